@@ -1,0 +1,130 @@
+"""π-StepNFT update: one forward pass per stored step transition, ranking loss, epochs of
+minibatches (SPEC §4). Rollouts come from the EMA policy; the EMA update is the trainer's
+job (``stepnft.ema``) because it happens once per iteration, after all epochs.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from stepnft.losses import stepnft_loss
+
+
+@dataclass
+class StepNFTConfig:
+    """Hyperparameters of π-StepNFT. Defaults are the paper's reference values unless noted."""
+
+    noise_level: float = 0.2
+    """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
+    beta: float = 1.0
+    """Trust factor β of the mirrored candidates ``v_old ± β Δc``."""
+    beta_dpo: float = 1.0
+    """Temperature of the ranking softplus."""
+    max_drift: float | None = 0.5
+    """Cap on ``||v - v_old||`` per chunk position inside the loss (None: no clip)."""
+    kl_beta: float = 1e-4
+    """Weight of ``mean((v - v_old)^2)``."""
+    target: str = "next"
+    """``next``: step-wise target ``x_{t-dt}`` (paper); ``x0``: final-action ablation."""
+    form: str = "rank"
+    """``rank``: contrastive ranking (paper); ``wmse``: DiffusionNFT weighted-MSE ablation."""
+    lr: float = 1e-4
+    """AdamW learning rate."""
+    weight_decay: float = 0.0
+    """AdamW weight decay."""
+    grad_clip: float = 1.0
+    """Global gradient-norm clip."""
+    update_epochs: int = 2
+    """Passes over each iteration's samples."""
+    minibatch_size: int = 128
+    """Samples per gradient step."""
+    ema_base: float = 0.1
+    """EMA decay at iteration 0."""
+    ema_target: float = 0.995
+    """EMA decay at the end of the horizon."""
+    ema_horizon: int | None = None
+    """Iterations over which the decay rises (None: the run's number of iterations)."""
+    balance_labels: bool = False
+    """Beyond SPEC: weight samples so successes and failures contribute equally
+    (successful episodes are short, so positives are a minority of stored samples)."""
+    drift_limit: float | None = None
+    """Beyond SPEC: stop an iteration's epochs early once the mean ``||v - v_old||`` exceeds
+    this (a PPO-style target-KL guard against drifting past the clip). None: off."""
+
+    def __post_init__(self) -> None:
+        checks = {
+            "noise_level": self.noise_level >= 0,
+            "beta": self.beta > 0,
+            "beta_dpo": self.beta_dpo > 0,
+            "lr": self.lr > 0,
+            "update_epochs": self.update_epochs >= 1,
+            "minibatch_size": self.minibatch_size >= 1,
+            "ema_base": 0 <= self.ema_base <= 1,
+            "ema_target": 0 <= self.ema_target <= 1,
+            "target": self.target in ("next", "x0"),
+            "form": self.form in ("rank", "wmse"),
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            k = bad[0]
+            raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
+
+
+def label_weights(y: Tensor) -> Tensor:
+    """Per-sample weights ``[B]`` that give successes and failures equal total weight."""
+    pos = (y > 0).float()
+    n_pos, n_neg = pos.sum(), (1 - pos).sum()
+    if n_pos == 0 or n_neg == 0:
+        return torch.ones_like(pos)
+    return pos * (0.5 * len(y) / n_pos) + (1 - pos) * (0.5 * len(y) / n_neg)
+
+
+def stepnft_update(
+    policy: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    batch: dict[str, Tensor],
+    cfg: StepNFTConfig,
+    generator: torch.Generator | None = None,
+) -> dict[str, float]:
+    """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps on ``batch``.
+
+    ``batch`` keys (``N`` stored transitions): ``state`` [N, S], ``lang`` [N, L] (optional),
+    ``x_t``, ``x_next``, ``v_old``, ``actions`` [N, H, A], ``t``, ``dt`` [N], ``y`` [N] in
+    {+1, -1}, ``mask`` [N, H]. Returns metrics averaged over minibatch steps.
+    """
+    n = batch["y"].shape[0]
+    weights = label_weights(batch["y"]) if cfg.balance_labels else None
+    sums: dict[str, float] = defaultdict(float)
+    steps = 0
+    stopped_early = 0.0
+    for _ in range(cfg.update_epochs):
+        epoch_drift, epoch_steps = 0.0, 0
+        for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_size):
+            mb = {k: v[idx] for k, v in batch.items()}
+            v = policy(mb["state"], mb.get("lang"), mb["x_t"], mb["t"])
+            loss, metrics = stepnft_loss(
+                v, mb["v_old"], mb["x_t"], mb["x_next"], mb["t"], mb["dt"], cfg.noise_level, mb["y"],
+                beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,
+                mask=mb["mask"], target=cfg.target, form=cfg.form, actions=mb["actions"],
+                weight=None if weights is None else weights[idx],
+            )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            metrics["grad_norm"] = float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
+            optimizer.step()
+            for k, val in metrics.items():
+                sums[k] += val
+            steps += 1
+            epoch_drift += metrics["delta_v_norm"]
+            epoch_steps += 1
+        if cfg.drift_limit is not None and epoch_drift / epoch_steps > cfg.drift_limit:
+            stopped_early = 1.0
+            break
+    out = {k: v / max(steps, 1) for k, v in sums.items()}
+    out["update_steps"] = float(steps)
+    out["drift_stopped"] = stopped_early
+    return out

@@ -1,0 +1,56 @@
+"""The EMA rollout policy ``v_old`` and its cosine decay schedule (SPEC §5)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+
+def ema_decay(iteration: int, horizon: int, base: float = 0.1, target: float = 0.995) -> float:
+    """Decay after ``iteration``: ``base`` at 0, rising on a half cosine to ``target`` at ``horizon``.
+
+    A low decay early lets the rollout policy follow the learner quickly; a high one late
+    keeps exploration data stable.
+    """
+    progress = min(iteration / max(horizon, 1), 1.0)
+    return target - (target - base) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def _frozen_children(model: nn.Module) -> list[nn.Module]:
+    """Outermost sub-modules whose parameters are all frozen (e.g. a VLM backbone)."""
+    found: list[nn.Module] = []
+
+    def visit(module: nn.Module) -> None:
+        for child in module.children():
+            params = list(child.parameters())
+            if params and not any(p.requires_grad for p in params):
+                found.append(child)
+            else:
+                visit(child)
+
+    visit(model)
+    return found
+
+
+def make_ema_copy(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` for rollouts; frozen sub-modules are shared, not copied."""
+    memo = {id(m): m for m in _frozen_children(model)}
+    ema = copy.deepcopy(model, memo)
+    for p in ema.parameters():
+        p.requires_grad_(False)
+    return ema
+
+
+@torch.no_grad()
+def ema_update(ema: nn.Module, model: nn.Module, decay: float) -> None:
+    """``θ_old ← decay θ_old + (1 - decay) θ`` for trained parameters; buffers are copied."""
+    for p_ema, p in zip(ema.parameters(), model.parameters()):
+        if p_ema is p:  # shared frozen module
+            continue
+        p_ema.lerp_(p, 1.0 - decay)
+    for b_ema, b in zip(ema.buffers(), model.buffers()):
+        if b_ema is not b:
+            b_ema.copy_(b)

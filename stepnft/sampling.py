@@ -1,0 +1,122 @@
+"""ODE and Flow-SDE denoising steps and chunk samplers (SPEC §1–3). Pure functions.
+
+Convention: ``x_t = (1 - t) * x0 + t * eps``; ``t = 1`` is pure noise, ``t = 0`` the action.
+A chunk is denoised over ``K`` steps on the grid ``t_k = 1 - k / K``; step ``k`` goes from
+``t_k`` to ``t_k - dt`` with ``dt = 1 / K``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+VelocityFn = Callable[[Tensor, Tensor], Tensor]
+"""``velocity_fn(x_t [B, H, A], t [B]) -> v [B, H, A]`` with the observation bound inside."""
+
+
+def _col(x: Tensor) -> Tensor:
+    """``[B] -> [B, 1, 1]`` so per-sample scalars broadcast over a chunk ``[B, H, A]``."""
+    return x.reshape(-1, 1, 1)
+
+
+def sde_step_coeffs(t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Coefficients of one Flow-SDE step: ``mean = u * x_t + b * v``, ``x_next ~ N(mean, std^2)``.
+
+    ``t``, ``dt``: ``[B]``. Returns ``u``, ``b``, ``std``, each ``[B, 1, 1]``.
+    ``sigma_t = a * sqrt(t / (1 - t))``; at ``t = 1`` the denominator is ``dt`` (SPEC §2).
+    """
+    t, dt = _col(t), _col(dt)
+    one_minus_t = torch.where(t >= 1.0 - 1e-6, dt, 1.0 - t)
+    sigma_sq = noise_level**2 * t / one_minus_t
+    u = 1.0 - sigma_sq * dt / (2.0 * t)
+    b = -dt * (1.0 + sigma_sq * (1.0 - t) / (2.0 * t))
+    std = torch.sqrt(sigma_sq * dt)
+    return u, b, std
+
+
+def sde_step_mean_std(x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, Tensor]:
+    """Mean and std of the Flow-SDE step ``x_t -> x_{t-dt}`` (SPEC §2).
+
+    ``x_t``, ``v``: ``[B, H, A]``; ``t``, ``dt``: ``[B]``. ``std`` is ``[B, 1, 1]``.
+    ``noise_level = 0`` gives the Euler ODE step ``x_t - dt * v`` with ``std = 0``.
+    """
+    u, b, std = sde_step_coeffs(t, dt, noise_level)
+    return u * x_t + b * v, std
+
+
+def flow_matching_pair(actions: Tensor, t: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
+    """Noisy chunk and flow-matching target: ``x_t = (1-t) x0 + t eps``, ``v = eps - x0``."""
+    return (1.0 - _col(t)) * actions + _col(t) * noise, noise - actions
+
+
+def sample_flow_time(batch: int, generator: torch.Generator | None = None, law: str = "uniform") -> Tensor:
+    """Training times ``t`` ``[B]`` for the SFT loss: ``uniform`` on (0, 1) or ``beta`` (π0's
+    Beta(1.5, 1) law on the noise side, which weights the noisier times more)."""
+    if law == "uniform":
+        return torch.rand(batch, generator=generator).clamp(1e-3, 1.0)
+    if law == "beta":
+        # Beta(1.5, 1) by inversion: F(x) = x^1.5.
+        u = torch.rand(batch, generator=generator) ** (1.0 / 1.5)
+        return (0.001 + 0.999 * u).clamp(max=1.0)
+    raise ValueError(f"unknown time law {law!r}; use 'uniform' or 'beta'")
+
+
+@dataclass
+class ChunkSample:
+    """A sampled action chunk and the one recorded denoising step training needs (SPEC §3).
+
+    Shapes: ``actions``, ``x_t``, ``x_next``, ``v_old``: ``[B, H, A]``; ``step``, ``t``, ``dt``: ``[B]``.
+    """
+
+    actions: Tensor
+    step: Tensor
+    x_t: Tensor
+    x_next: Tensor
+    t: Tensor
+    dt: Tensor
+    v_old: Tensor
+
+
+@torch.no_grad()
+def sample_chunk(
+    velocity_fn: VelocityFn,
+    shape: tuple[int, int, int],
+    num_steps: int = 4,
+    noise_level: float = 0.0,
+    generator: torch.Generator | None = None,
+    stochastic_steps: str = "all",
+    device: torch.device | str = "cpu",
+) -> ChunkSample:
+    """Denoise pure noise into an action chunk ``[B, H, A]`` in ``num_steps`` steps.
+
+    ``noise_level = 0`` is the deterministic ODE sampler (evaluation); ``> 0`` is Flow-SDE
+    (exploration). One step index ``j ~ Uniform{0..K-1}`` per sample is recorded.
+    ``stochastic_steps``: ``"all"`` makes every step stochastic (π-StepNFT), ``"one"`` only
+    the recorded step, the rest ODE (πRL's PPO/GRPO likelihood).
+    """
+    if stochastic_steps not in ("all", "one"):
+        raise ValueError(f"stochastic_steps must be 'all' or 'one', got {stochastic_steps!r}")
+    batch = shape[0]
+    x = torch.randn(shape, generator=generator).to(device)
+    step = torch.randint(0, num_steps, (batch,), generator=generator).to(device)
+    dt = torch.full((batch,), 1.0 / num_steps, device=device)
+    rec = {k: torch.zeros(shape, device=device) for k in ("x_t", "x_next", "v_old")}
+    t_rec = torch.zeros(batch, device=device)
+    for k in range(num_steps):
+        t = torch.full((batch,), 1.0 - k / num_steps, device=device)
+        v = velocity_fn(x, t)
+        here = _col(step == k)
+        mean, std = sde_step_mean_std(x, v, t, dt, noise_level)
+        if stochastic_steps == "one":  # the other steps are plain Euler steps
+            ode_mean, _ = sde_step_mean_std(x, v, t, dt, 0.0)
+            mean, std = torch.where(here, mean, ode_mean), std * here.float()
+        x_next = mean + std * torch.randn(shape, generator=generator).to(device)
+        rec["x_t"] = torch.where(here, x, rec["x_t"])
+        rec["x_next"] = torch.where(here, x_next, rec["x_next"])
+        rec["v_old"] = torch.where(here, v, rec["v_old"])
+        t_rec = torch.where(step == k, t, t_rec)
+        x = x_next
+    return ChunkSample(actions=x, step=step, t=t_rec, dt=dt, **rec)
