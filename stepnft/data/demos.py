@@ -25,10 +25,12 @@ streams are seeded below 2**32, so demo initial states never coincide with their
 """
 
 import dataclasses
+import io
 import json
 import os
 import tempfile
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Sequence
 from importlib.metadata import version
 from pathlib import Path
 
@@ -38,7 +40,13 @@ from metaworld.policies import ENV_POLICY_MAP
 from tqdm import tqdm
 
 from stepnft.envs.instructions import instruction_for
-from stepnft.envs.metaworld import ACTION_DIM, OBS_DIM, TASK_NAMES, MetaWorldChunkEnv, validate_tasks
+from stepnft.envs.metaworld import (
+    ACTION_DIM,
+    OBS_DIM,
+    TASK_NAMES,
+    MetaWorldChunkEnv,
+    validate_tasks,
+)
 
 FORMAT = "stepnft-demos"
 VERSION = 1
@@ -105,16 +113,15 @@ def generate_demos(
         for k in range(episodes):
             episode = _run_expert(env, expert, noise_rng, action_noise, demo_seed(seed, k))
             file = f"{task}/episode_{k:04d}.npz"
-            _write_atomic(
-                out_dir / file,
-                lambda f, ep=episode: np.savez(
-                    f,
-                    observations=ep.observations,
-                    actions=ep.actions,
-                    rewards=ep.rewards,
-                    successes=ep.successes,
-                ),
+            buffer = io.BytesIO()
+            np.savez(
+                buffer,
+                observations=episode.observations,
+                actions=episode.actions,
+                rewards=episode.rewards,
+                successes=episode.successes,
             )
+            _write_atomic(out_dir / file, buffer.getvalue())
             entries.append(
                 {
                     "file": file,
@@ -145,7 +152,7 @@ def generate_demos(
             "metaworld_version": version("metaworld"),
         },
     }
-    _write_atomic(out_dir / "manifest.json", lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    _write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1).encode())
     return out_dir
 
 
@@ -156,7 +163,10 @@ def _run_expert(
     observations, actions, rewards, successes = [obs], [], [], []
     done = False
     while not done:
-        action = expert.get_action(obs)
+        with warnings.catch_warnings():
+            # The experts warn when their gains saturate an action; we clip it anyway.
+            warnings.filterwarnings("ignore", "Constant", UserWarning)
+            action = expert.get_action(obs)
         if action_noise > 0:
             action = action + noise_rng.normal(0.0, action_noise, size=ACTION_DIM)
         action = np.clip(action, -1.0, 1.0).astype(np.float32)
@@ -178,12 +188,12 @@ def _run_expert(
     )
 
 
-def _write_atomic(path: Path, write: Callable) -> None:
-    """Calls `write(file)` on a temporary file next to `path`, then renames it to `path`."""
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Writes `data` to a temporary file next to `path`, then renames it to `path`."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            write(f)
+            f.write(data)
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
@@ -194,21 +204,25 @@ def load_demos(path: str | Path) -> list[DemoEpisode]:
     """Loads every episode listed in `path/manifest.json`, in manifest order."""
     path = Path(path)
     manifest_path = path / "manifest.json"
-    regenerate = f"run `stepnft demos --out {path}` to regenerate it"
     if not manifest_path.is_file():
-        raise FileNotFoundError(f"no demonstrations at {path}: run `stepnft demos --out {path}` first")
+        raise FileNotFoundError(
+            f"no demonstrations at {path}: run `stepnft demos --out {path}` first"
+        )
+    regenerate = f"run `stepnft demos --out {path}` to regenerate them"
     try:
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
             raise ValueError(f"expected format {FORMAT!r} version {VERSION}")
-        entries = manifest["episodes"]
-        episodes = [_load_episode(path, entry) for entry in entries]
+        return [_load_episode(path, entry) for entry in manifest["episodes"]]
     except FileNotFoundError as e:
-        raise FileNotFoundError(f"demonstrations at {path} are incomplete ({e}); {regenerate}") from None
+        raise FileNotFoundError(
+            f"demonstrations at {path} are incomplete ({e}); {regenerate}"
+        ) from None
     except (ValueError, KeyError, TypeError, AttributeError, OSError) as e:
-        # json.JSONDecodeError and numpy's errors on a damaged .npz are ValueErrors/OSErrors.
-        raise ValueError(f"corrupt demonstrations at {path} ({type(e).__name__}: {e}); {regenerate}") from None
-    return episodes
+        # Bad JSON is a ValueError; a damaged .npz raises ValueError, OSError or KeyError.
+        raise ValueError(
+            f"corrupt demonstrations at {path} ({type(e).__name__}: {e}); {regenerate}"
+        ) from None
 
 
 def _load_episode(root: Path, entry: dict) -> DemoEpisode:
@@ -226,7 +240,9 @@ def _load_episode(root: Path, entry: dict) -> DemoEpisode:
     }
     for key, shape in expected.items():
         if arrays[key].shape != shape:
-            raise ValueError(f"{entry['file']}: {key} has shape {arrays[key].shape}, expected {shape}")
+            raise ValueError(
+                f"{entry['file']}: {key} has shape {arrays[key].shape}, expected {shape}"
+            )
     return DemoEpisode(
         task=entry["task"],
         instruction=entry["instruction"],

@@ -25,6 +25,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
@@ -132,7 +133,7 @@ class MetaWorldChunkEnv(gym.Env):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Starts an episode; with `seed`, its initial state depends only on (task, seed)."""
         super().reset(seed=seed)
-        # The simulator samples from our generator, so one seed controls both.
+        # MetaWorld draws this episode's object and goal positions from our generator.
         self._sim.np_random = self.np_random
         obs, _ = self._sim.reset()
         self._obs = obs.astype(np.float32)
@@ -232,11 +233,11 @@ class MetaWorldVecEnv(gym.vector.SyncVectorEnv):
             )
             for task, env_seed in zip(self.task_names, env_seeds)
         ]
-        mode = gym.vector.AutoresetMode.SAME_STEP if autoreset else gym.vector.AutoresetMode.DISABLED
+        mode = AutoresetMode.SAME_STEP if autoreset else AutoresetMode.DISABLED
         super().__init__(env_fns, autoreset_mode=mode)
 
     def step(self, actions: np.ndarray):
-        if self.autoreset_mode == gym.vector.AutoresetMode.DISABLED:
+        if self.autoreset_mode == AutoresetMode.DISABLED:
             # SyncVectorEnv refuses to step a finished sub-env when autoreset is disabled;
             # ours treat that step as a no-op, so evaluation can step the whole batch.
             self._autoreset_envs[:] = False

@@ -1,0 +1,161 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from stepnft.data.demos import (
+    DEMO_SEED_OFFSET,
+    DemoEpisode,
+    demo_seed,
+    demos_to_chunks,
+    generate_demos,
+    load_demos,
+)
+from stepnft.envs.instructions import instruction_for
+from stepnft.envs.metaworld import MetaWorldChunkEnv
+
+
+@pytest.fixture(scope="module")
+def reach_demos(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demos") / "reach"
+    return generate_demos("reach-v3", episodes=2, out_dir=out, seed=0, progress=False)
+
+
+def test_demos_round_trip_through_disk(reach_demos):
+    manifest = json.loads((reach_demos / "manifest.json").read_text())
+    assert manifest["format"] == "stepnft-demos" and manifest["version"] == 1
+    assert manifest["tasks"] == ["reach-v3"]
+    assert manifest["generator"]["episodes_per_task"] == 2
+    assert [entry["file"] for entry in manifest["episodes"]] == [
+        "reach-v3/episode_0000.npz",
+        "reach-v3/episode_0001.npz",
+    ]
+    assert not list(reach_demos.rglob("*.tmp"))
+
+    episodes = load_demos(reach_demos)
+    assert len(episodes) == 2
+    for k, (entry, episode) in enumerate(zip(manifest["episodes"], episodes)):
+        length = entry["length"]
+        assert episode.task == entry["task"] == "reach-v3"
+        assert episode.instruction == entry["instruction"] == instruction_for("reach-v3")
+        assert episode.seed == entry["seed"] == demo_seed(0, k) >= DEMO_SEED_OFFSET
+        assert episode.observations.shape == (length + 1, 39)
+        assert episode.actions.shape == (length, 4)
+        assert episode.observations.dtype == episode.actions.dtype == np.float32
+        assert episode.rewards.shape == (length,) and episode.rewards.dtype == np.float32
+        assert episode.successes.shape == (length,) and episode.successes.dtype == bool
+        with np.load(reach_demos / entry["file"]) as raw:
+            for key in ("observations", "actions", "rewards", "successes"):
+                np.testing.assert_array_equal(raw[key], getattr(episode, key))
+    assert episodes[0].seed != episodes[1].seed
+    assert not np.array_equal(episodes[0].observations[0], episodes[1].observations[0])
+
+
+def test_expert_demos_succeed_and_replay_exactly(reach_demos):
+    for episode in load_demos(reach_demos):
+        # Episodes end at the first success.
+        assert episode.success and episode.successes[-1] and not episode.successes[:-1].any()
+        assert np.abs(episode.actions).max() <= 1.0
+        env = MetaWorldChunkEnv(episode.task, n_exec=1)
+        obs, _ = env.reset(seed=episode.seed)
+        np.testing.assert_array_equal(obs, episode.observations[0])
+        for t, action in enumerate(episode.actions):
+            obs, reward, *_ = env.step(action[None])
+            np.testing.assert_array_equal(obs, episode.observations[t + 1])
+            assert reward == pytest.approx(episode.rewards[t])
+
+
+def test_noisy_generation_is_reproducible_from_its_seed(tmp_path):
+    def first_actions(seed, name):
+        out = generate_demos(
+            "reach-v3", 1, tmp_path / name, seed=seed, action_noise=0.3, max_episode_steps=20,
+            progress=False,
+        )
+        return load_demos(out)[0].actions
+
+    same_a, same_b, other = first_actions(0, "a"), first_actions(0, "b"), first_actions(1, "c")
+    np.testing.assert_array_equal(same_a, same_b)
+    assert not np.array_equal(same_a, other)
+    # The expert saturates its actions, so noise pushes many past the bounds: stored clipped.
+    assert np.abs(same_a).max() == 1.0
+
+
+def make_episode(task, actions, success=True):
+    actions = np.asarray(actions, dtype=np.float32)
+    length = len(actions)
+    observations = np.arange((length + 1) * 39, dtype=np.float32).reshape(length + 1, 39)
+    successes = np.zeros(length, dtype=bool)
+    successes[-1] = success
+    return DemoEpisode(
+        task=task,
+        instruction=instruction_for(task),
+        observations=observations,
+        actions=actions,
+        rewards=np.zeros(length, dtype=np.float32),
+        successes=successes,
+        success=success,
+        seed=0,
+    )
+
+
+def test_chunks_repeat_the_last_action_past_the_end_and_mask_it():
+    # Action t is the constant vector t + 1, so chunk values name their source step.
+    pushed = make_episode("push-v3", [[1.0] * 4, [2.0] * 4, [3.0] * 4])
+    failed = make_episode("reach-v3", [[9.0] * 4, [8.0] * 4], success=False)
+    data = demos_to_chunks([pushed, failed], tasks=["reach-v3", "push-v3"], horizon=4)
+
+    assert data["state"].dtype == torch.float32 and data["actions"].dtype == torch.float32
+    assert data["task_id"].dtype == torch.int64 and data["mask"].dtype == torch.bool
+    torch.testing.assert_close(data["state"], torch.from_numpy(pushed.observations[:3]))
+    assert data["task_id"].tolist() == [1, 1, 1]
+    assert data["actions"].shape == (3, 4, 4)
+    assert (data["actions"] == data["actions"][..., :1]).all()
+    assert data["actions"][..., 0].tolist() == [[1, 2, 3, 3], [2, 3, 3, 3], [3, 3, 3, 3]]
+    assert data["mask"].tolist() == [
+        [True, True, True, False],
+        [True, True, False, False],
+        [True, False, False, False],
+    ]
+
+    everything = demos_to_chunks(
+        [pushed, failed], ["reach-v3", "push-v3"], horizon=2, only_successful=False
+    )
+    assert everything["task_id"].tolist() == [1, 1, 1, 0, 0]
+    assert everything["actions"][3:, :, 0].tolist() == [[9, 8], [8, 8]]
+    assert everything["mask"][3:].tolist() == [[True, True], [True, False]]
+
+
+def test_chunks_refuse_unknown_tasks_and_empty_input():
+    pushed = make_episode("push-v3", [[1.0] * 4])
+    with pytest.raises(ValueError, match="push-v3"):
+        demos_to_chunks([pushed], tasks=["reach-v3"], horizon=2)
+    with pytest.raises(ValueError, match="no successful"):
+        demos_to_chunks([make_episode("push-v3", [[1.0] * 4], success=False)], ["push-v3"], 2)
+
+
+def test_load_demos_explains_missing_or_corrupt_folders(tmp_path, reach_demos):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(FileNotFoundError, match=f"no demonstrations at {missing}: run `stepnft demos"):
+        load_demos(missing)
+
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    (corrupt / "manifest.json").write_text('{"format": "stepnft-demos", "vers')
+    with pytest.raises(ValueError, match="corrupt demonstrations at .*stepnft demos --out"):
+        load_demos(corrupt)
+
+    (corrupt / "manifest.json").write_text(json.dumps({"format": "other", "version": 1}))
+    with pytest.raises(ValueError, match="stepnft-demos"):
+        load_demos(corrupt)
+
+    manifest = json.loads((reach_demos / "manifest.json").read_text())
+    (corrupt / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(FileNotFoundError, match="incomplete .*episode_0000.npz"):
+        load_demos(corrupt)
+
+    (corrupt / "reach-v3").mkdir()
+    for entry in manifest["episodes"]:
+        (corrupt / entry["file"]).write_bytes(b"not an npz file")
+    with pytest.raises(ValueError, match="corrupt demonstrations"):
+        load_demos(corrupt)
