@@ -33,6 +33,9 @@ class EnvConfig:
     """Episode cap in env steps (MetaWorld allows at most 500)."""
     terminate_on_success: bool = True
     """End an episode at its first success (the episode then counts as a success)."""
+    num_workers: int = 0
+    """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
+    cores of a 2-core machine, one process per sub-env)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.tasks, str):
@@ -51,14 +54,20 @@ class DemoConfig:
     """Folder of demonstrations (generated there if missing)."""
     episodes: int = 5
     """Demonstrations per task (few-shot)."""
+    task_episodes: dict[str, int] = field(default_factory=dict)
+    """Per-task overrides of ``episodes`` (e.g. fewer on tasks SFT already saturates)."""
     action_noise: float = 0.0
     """Std of Gaussian noise added to the expert's actions."""
     seed: int = 0
     """Seed of the demonstrations' initial states (disjoint from evaluation states)."""
 
     def __post_init__(self) -> None:
-        if self.episodes < 1:
-            raise ValueError(f"demos.episodes must be >= 1, got {self.episodes}")
+        if self.episodes < 1 or any(n < 1 for n in self.task_episodes.values()):
+            raise ValueError(f"demos.episodes and demos.task_episodes must be >= 1, got {self.episodes}, {self.task_episodes}")
+
+    def count(self, task: str) -> int:
+        """Demonstrations used for ``task``."""
+        return self.task_episodes.get(task, self.episodes)
 
 
 @dataclass

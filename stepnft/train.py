@@ -25,7 +25,7 @@ from stepnft.config import TrainConfig, save_config
 from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.envs.instructions import instruction_for
-from stepnft.envs.metaworld import make_metaworld_vec_env, validate_tasks
+from stepnft.envs.metaworld import get_rng_states, make_metaworld_vec_env, set_rng_states, validate_tasks
 from stepnft.evaluate import evaluate_policy, format_table
 from stepnft.policies.flow import FlowPolicy
 from stepnft.policies.language import LanguageEncoder
@@ -61,14 +61,16 @@ def sft_policy(cfg: TrainConfig, tasks: list[str], lang_table, log: Callable[[st
     """Few-shot SFT from the demonstrations (generated first if the folder has none)."""
     path = Path(cfg.demos.path)
     if not (path / "manifest.json").is_file():
-        log(f"generating {cfg.demos.episodes} demonstrations per task into {path}")
-        generate_demos(tasks, cfg.demos.episodes, path, seed=cfg.demos.seed, action_noise=cfg.demos.action_noise,
+        count = max(cfg.demos.count(t) for t in tasks)
+        log(f"generating {count} demonstrations per task into {path}")
+        generate_demos(tasks, count, path, seed=cfg.demos.seed, action_noise=cfg.demos.action_noise,
                        max_episode_steps=cfg.env.max_episode_steps)
-    episodes = [e for e in load_demos(path) if e.task in tasks]
-    per_task = {t: [e for e in episodes if e.task == t][: cfg.demos.episodes] for t in tasks}
-    missing = [t for t, eps in per_task.items() if not eps]
-    if missing:
-        raise ValueError(f"demonstrations in {path} lack tasks {missing}: run `stepnft demos --tasks ... --out {path}`")
+    episodes = [e for e in load_demos(path) if e.task in tasks and e.success]
+    per_task = {t: [e for e in episodes if e.task == t][: cfg.demos.count(t)] for t in tasks}
+    short = [t for t, eps in per_task.items() if len(eps) < cfg.demos.count(t)]
+    if short:
+        raise ValueError(f"demonstrations in {path} have too few successful episodes of {short}: "
+                         f"run `stepnft demos --tasks ... --episodes N --out {path}` with a larger N")
     data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, cfg.policy.horizon)
     if lang_table is not None:
         data["lang"] = lang_table[data["task_id"]]
@@ -146,7 +148,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
     lang_table = language_table(cfg, tasks, cache_dir=run_dir / "lang_cache")
     make_opt = lambda p: torch.optim.AdamW(p.parameters(), lr=cfg.algo.lr, betas=(0.9, 0.95), weight_decay=cfg.algo.weight_decay)  # noqa: E731
     venv = make_metaworld_vec_env(tasks, cfg.env.envs_per_task, cfg.policy.n_exec, cfg.env.max_episode_steps,
-                                  cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False)
+                                  cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False,
+                                  num_workers=cfg.env.num_workers)
     gen = torch.Generator().manual_seed(cfg.seed)
     waves_per_iter = math.ceil(cfg.episodes_per_iteration / venv.num_envs)
     horizon = cfg.algo.ema_horizon or cfg.iterations
@@ -166,8 +169,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         policy, ema, optimizer, state = ckpt["policy"], ckpt["ema"], ckpt["optimizer"], ckpt["state"]
         gen.set_state(ckpt["rng"]["generator"])
         torch.set_rng_state(ckpt["rng"]["torch"])
-        for env, s in zip(venv.envs, state["env_rng"]):
-            env.np_random.bit_generator.state = s
+        set_rng_states(venv, state["env_rng"])
         start_it, env_steps, before = state["iteration"], state["env_steps"], state["before"]
         log(f"resuming {run_dir} from iteration {start_it} ({env_steps} env steps)")
     else:
@@ -193,7 +195,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         batch = concat_transitions(waves)
         if lang_table is not None:
             batch["lang"] = lang_table[batch["task_id"]]
-        batch = {k: v for k, v in batch.items() if k not in ("task_id", "env_index")}
+        del batch["env_index"]
         rollout_steps = int(sum(w.length.sum() for w in waves))
         env_steps += rollout_steps
         t1 = time.perf_counter()
@@ -223,7 +225,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
                         eval=f"{record.get('charts/success_rate', float('nan')):.2f}",
                         dv=f"{metrics['delta_v_norm']:.3f}", refresh=False)
         if (it + 1) % cfg.checkpoint_every == 0 or last:
-            state = {"env_steps": env_steps, "before": before, "env_rng": [e.np_random.bit_generator.state for e in venv.envs]}
+            state = {"env_steps": env_steps, "before": before, "env_rng": get_rng_states(venv)}
             save_checkpoint(run_dir, it + 1, policy, ema, optimizer, state,
                             {"generator": gen.get_state(), "torch": torch.get_rng_state()})
     bar.close()
@@ -258,7 +260,8 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     policy = sft_policy(cfg, tasks, lang_table, log)
     policy.save_pretrained(run_dir / "policy")
     venv = make_metaworld_vec_env(tasks, cfg.env.envs_per_task, cfg.policy.n_exec, cfg.env.max_episode_steps,
-                                  cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False)
+                                  cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False,
+                                  num_workers=cfg.env.num_workers)
     result = evaluate_policy(policy, venv, lang_table, cfg.eval.episodes, cfg.eval.seed)
     venv.close()
     write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))

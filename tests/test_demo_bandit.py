@@ -24,7 +24,7 @@ def test_ode_rollouts_give_no_signal():
     assert hist[-1]["success"] < 0.6
 
 
-@pytest.mark.parametrize("switch", [dict(target="x0"), dict(form="wmse"), dict(beta=2.0), dict(balance_labels=True)])
+@pytest.mark.parametrize("switch", [dict(target="x0"), dict(form="wmse"), dict(beta=2.0), dict(label_balance="global")])
 def test_ablation_switches_run_and_report(switch):
     hist = run_bandit_demo(with_overrides(BanditDemoConfig(iterations=8), **switch), log=lambda s: None)
     assert len(hist) == 9

@@ -48,12 +48,14 @@ class StepNFTConfig:
     """EMA decay at the end of the horizon."""
     ema_horizon: int | None = None
     """Iterations over which the decay rises (None: the run's number of iterations)."""
-    balance_labels: bool = False
-    """Beyond SPEC: weight samples so successes and failures contribute equally
-    (successful episodes are short, so positives are a minority of stored samples)."""
+    label_balance: str = "none"
+    """Beyond SPEC: ``none`` (paper); ``global``: weight samples so successes and failures
+    carry equal total weight (successful episodes are short, so positives are a minority of
+    stored samples); ``task``: the same within each task (a zero-mean signal per task)."""
     drift_limit: float | None = None
-    """Beyond SPEC: stop an iteration's epochs early once the mean ``||v - v_old||`` exceeds
-    this (a PPO-style target-KL guard against drifting past the clip). None: off."""
+    """Beyond SPEC: skip the rest of an iteration's updates once a minibatch's mean
+    ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
+    past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
 
     def __post_init__(self) -> None:
         checks = {
@@ -67,6 +69,7 @@ class StepNFTConfig:
             "ema_target": 0 <= self.ema_target <= 1,
             "target": self.target in ("next", "x0"),
             "form": self.form in ("rank", "wmse"),
+            "label_balance": self.label_balance in ("none", "global", "task"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -74,13 +77,21 @@ class StepNFTConfig:
             raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
 
 
-def label_weights(y: Tensor) -> Tensor:
-    """Per-sample weights ``[B]`` that give successes and failures equal total weight."""
-    pos = (y > 0).float()
-    n_pos, n_neg = pos.sum(), (1 - pos).sum()
-    if n_pos == 0 or n_neg == 0:
-        return torch.ones_like(pos)
-    return pos * (0.5 * len(y) / n_pos) + (1 - pos) * (0.5 * len(y) / n_neg)
+def label_weights(y: Tensor, group: Tensor | None = None) -> Tensor:
+    """Per-sample weights ``[B]`` giving successes and failures equal total weight within each
+    group (``group`` [B] ints, e.g. task ids; None: one group). A group with one label only
+    keeps weight 1. The weights average to 1 over the batch."""
+    group = torch.zeros_like(y, dtype=torch.long) if group is None else group
+    pos = y > 0
+    w = torch.ones_like(y, dtype=torch.float32)
+    for g in group.unique():
+        in_g = group == g
+        n_pos, n_neg = (pos & in_g).sum(), (~pos & in_g).sum()
+        if n_pos > 0 and n_neg > 0:
+            n = in_g.sum()
+            w[pos & in_g] = 0.5 * n / n_pos
+            w[~pos & in_g] = 0.5 * n / n_neg
+    return w
 
 
 def stepnft_update(
@@ -94,15 +105,17 @@ def stepnft_update(
 
     ``batch`` keys (``N`` stored transitions): ``state`` [N, S], ``lang`` [N, L] (optional),
     ``x_t``, ``x_next``, ``v_old``, ``actions`` [N, H, A], ``t``, ``dt`` [N], ``y`` [N] in
-    {+1, -1}, ``mask`` [N, H]. Returns metrics averaged over minibatch steps.
+    {+1, -1}, ``mask`` [N, H], ``task_id`` [N] (optional, for ``label_balance="task"``).
+    Returns metrics averaged over minibatch steps.
     """
     n = batch["y"].shape[0]
-    weights = label_weights(batch["y"]) if cfg.balance_labels else None
+    weights = None
+    if cfg.label_balance != "none":
+        weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None)
     sums: dict[str, float] = defaultdict(float)
-    steps = 0
-    stopped_early = 0.0
+    seen = steps = 0
+    stopped = False
     for _ in range(cfg.update_epochs):
-        epoch_drift, epoch_steps = 0.0, 0
         for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_size):
             mb = {k: v[idx] for k, v in batch.items()}
             v = policy(mb["state"], mb.get("lang"), mb["x_t"], mb["t"])
@@ -112,19 +125,23 @@ def stepnft_update(
                 mask=mb["mask"], target=cfg.target, form=cfg.form, actions=mb["actions"],
                 weight=None if weights is None else weights[idx],
             )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            metrics["grad_norm"] = float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
-            optimizer.step()
             for k, val in metrics.items():
                 sums[k] += val
+            seen += 1
+            # The guard looks before it steps: no update is taken from a policy already too far
+            # from v_old, so the drift stays near the limit however large the learning rate.
+            stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
+            if stopped:
+                break
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
+            optimizer.step()
             steps += 1
-            epoch_drift += metrics["delta_v_norm"]
-            epoch_steps += 1
-        if cfg.drift_limit is not None and epoch_drift / epoch_steps > cfg.drift_limit:
-            stopped_early = 1.0
+        if stopped:
             break
-    out = {k: v / max(steps, 1) for k, v in sums.items()}
+    out = {k: v / max(seen, 1) for k, v in sums.items()}
+    out["grad_norm"] = sums["grad_norm"] / max(steps, 1)
     out["update_steps"] = float(steps)
-    out["drift_stopped"] = stopped_early
+    out["drift_stopped"] = float(stopped)
     return out
