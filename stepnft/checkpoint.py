@@ -26,9 +26,13 @@ KEEP = 2  # checkpoints kept on disk
 def write_atomic(path: Path, text: str) -> None:
     """Replace ``path`` with ``text`` so readers see the old or the new file, never half."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _flatten_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
@@ -59,17 +63,23 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: FlowPolicy, ema: Flow
     """Write checkpoint ``iter_{iteration}`` atomically and point ``LATEST`` at it."""
     root = run_dir / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
+    for stale in root.glob(".tmp-*"):  # left by a writer that was killed
+        shutil.rmtree(stale, ignore_errors=True)
     name = f"iter_{iteration:06d}"
     tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tmp-"))
-    policy.save_pretrained(tmp / "policy")
-    ema.save_pretrained(tmp / "ema")
-    tensors, meta = _flatten_optimizer(optimizer)
-    save_file({**tensors, **{f"rng.{k}": v for k, v in rng.items()}}, str(tmp / "optimizer.safetensors"))
-    (tmp / "state.json").write_text(json.dumps({**state, "iteration": iteration, "optimizer": meta}))
-    final = root / name
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
+    try:
+        policy.save_pretrained(tmp / "policy")
+        ema.save_pretrained(tmp / "ema")
+        tensors, meta = _flatten_optimizer(optimizer)
+        save_file({**tensors, **{f"rng.{k}": v for k, v in rng.items()}}, str(tmp / "optimizer.safetensors"))
+        (tmp / "state.json").write_text(json.dumps({**state, "iteration": iteration, "optimizer": meta}))
+        final = root / name
+        if final.exists():  # never the one LATEST names: iterations only grow after a resume
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     write_atomic(root / "LATEST", name)
     for old in sorted(p for p in root.glob("iter_*") if p.name != name)[:-(KEEP - 1) or None]:
         shutil.rmtree(old, ignore_errors=True)

@@ -8,9 +8,12 @@ line on stderr and exit code 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,6 +24,9 @@ COMMANDS = {
     "eval": "deterministic (ODE) evaluation of a policy on fixed initial states, with 95 % CIs",
     "demo-bandit": "the core demo: π-StepNFT on a contextual bandit, success per iteration",
 }
+
+CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval")
+"""The sections of ``TrainConfig`` (kept here so ``stepnft --help`` needs no heavy import)."""
 
 
 @dataclass
@@ -61,6 +67,16 @@ class EvalArgs:
     """Frozen sentence encoder ('default' or a local folder); must match training."""
     out: str | None = None
     """Also write the results as JSON to this file."""
+    video_dir: str | None = None
+    """Also record ODE episodes as ``DIR/<task>_ep<e>_<success|fail>.mp4`` (needs offscreen
+    rendering: MUJOCO_GL=egl)."""
+    video_episodes: int = 1
+    """Episodes recorded per task with --video-dir (episode e starts from eval state seed + e)."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 0 or self.video_episodes < 1:
+            raise ValueError(f"episodes must be >= 0 (0: no evaluation) and video_episodes >= 1, "
+                             f"got {self.episodes} and {self.video_episodes}")
 
 
 @dataclass
@@ -86,35 +102,119 @@ class UsageError(Exception):
 
 
 def _tyro(cls, args, default, prog):
+    """Parse ``args`` over ``default`` into ``cls``; a bad value raises ValueError.
+
+    tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
+    box of its own, so sections are built unvalidated and their checks run after parsing.
+    """
     import tyro
 
-    return tyro.cli(cls, args=args, default=default, prog=prog, description=_describe(cls))
+    with _validation_deferred(cls):
+        parsed = tyro.cli(cls, args=args, default=default, prog=prog, description=_describe(cls))
+    _validate(parsed)
+    return parsed
+
+
+def _section_classes(cls) -> set[type]:
+    """``cls`` and the dataclasses of its nested sections."""
+    found = {cls}
+    for hint in typing.get_type_hints(cls).values():
+        if dataclasses.is_dataclass(hint) and hint not in found:
+            found |= _section_classes(hint)
+    return found
+
+
+@contextlib.contextmanager
+def _validation_deferred(cls):
+    """Within the block, ``cls`` and its sections skip their ``__post_init__`` checks."""
+    saved = {c: c.__dict__["__post_init__"] for c in _section_classes(cls) if "__post_init__" in c.__dict__}
+    for c in saved:
+        c.__post_init__ = lambda self: None
+    try:
+        yield
+    finally:
+        for c, check in saved.items():
+            c.__post_init__ = check
+
+
+def _validate(obj) -> None:
+    """Run the ``__post_init__`` checks of ``obj``'s sections, innermost first, then its own."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            _validate(value)
+    check = getattr(obj, "__post_init__", None)
+    if check is not None:
+        check()
 
 
 def _describe(cls) -> str:
     doc = (cls.__doc__ or "").strip()
     if cls.__name__ == "TrainConfig":
         doc += (" Extra flags: --config FILE.yaml (defaults for every flag below; a run's config.yaml"
-                " reproduces it), --resume RUN_DIR (continue the last checkpoint of a run; other flags are ignored).")
+                " reproduces it), --resume RUN_DIR (continue the last checkpoint of a run; it takes no other flags).")
     return doc
+
+
+def _load_config(path: str):
+    """``load_config`` with every value type-checked first, so a bad one is a ValueError."""
+    from stepnft.config import TrainConfig, load_config
+
+    with _validation_deferred(TrainConfig):
+        cfg = load_config(path)
+    _check_types(cfg, f"{path}: ")
+    _validate(cfg)
+    return cfg
+
+
+def _check_types(obj, where: str = "") -> None:
+    """ValueError naming the first field of dataclass ``obj`` whose value is not of its type."""
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        value, hint = getattr(obj, f.name), hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            _check_types(value, f"{where}{f.name}.")
+        elif not _matches(value, hint):
+            expected = hint.__name__ if isinstance(hint, type) else str(hint)
+            raise ValueError(f"{where}{f.name}={value!r} has the wrong type, expected {expected}")
+
+
+def _matches(value, hint) -> bool:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in args)
+    if origin is list:  # a comma-separated string is accepted for a list of names
+        return isinstance(value, str) or (isinstance(value, list) and all(_matches(v, args[0]) for v in value))
+    if origin is dict:
+        return isinstance(value, dict) and all(_matches(k, args[0]) and _matches(v, args[1]) for k, v in value.items())
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
 
 
 def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
     """Split off --config / --resume, then let tyro parse the rest over the YAML defaults."""
-    from stepnft.config import TrainConfig, load_config
+    from stepnft.config import TrainConfig
 
-    pre = argparse.ArgumentParser(add_help=False)
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     pre.add_argument("--config")
     if allow_resume:
         pre.add_argument("--resume")
     known, rest = pre.parse_known_args(argv)
     resume = getattr(known, "resume", None)
-    if resume:
+    if resume and not any(a in ("-h", "--help") for a in rest):
+        if rest or known.config:
+            extra = " ".join(rest + (["--config", known.config] if known.config else []))
+            raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags; drop: {extra}")
         cfg_path = Path(resume) / "config.yaml"
         if not cfg_path.is_file():
             raise UsageError(f"cannot resume {resume}: no config.yaml there (is it a stepnft run directory?)")
-        return load_config(cfg_path), True
-    base = load_config(known.config) if known.config else TrainConfig()
+        cfg = _load_config(str(cfg_path))
+        cfg.run_dir = resume  # the folder may have been moved or copied since it was written
+        return cfg, True
+    base = _load_config(known.config) if known.config else TrainConfig()
     return _tyro(TrainConfig, rest, base, prog), False
 
 
@@ -124,9 +224,7 @@ def cmd_demos(argv: list[str]) -> int:
 
     args = _tyro(DemosArgs, argv, DemosArgs(), "stepnft demos")
     tasks = validate_tasks(args.tasks[0] if len(args.tasks) == 1 else args.tasks)
-    from stepnft.train import prepare_run_dir
-
-    prepare_run_dir(args.out)
+    _writable_dir(args.out, "--out")
     path = generate_demos(tasks, args.episodes, args.out, seed=args.seed, action_noise=args.action_noise,
                           max_episode_steps=args.max_episode_steps)
     print(f"wrote {args.episodes} episodes x {len(tasks)} tasks to {path}")
@@ -150,22 +248,49 @@ def cmd_train(argv: list[str]) -> int:
 
 
 def cmd_eval(argv: list[str]) -> int:
+    from stepnft.checkpoint import write_atomic
     from stepnft.config import TrainConfig
     from stepnft.envs.metaworld import make_metaworld_vec_env, validate_tasks
-    from stepnft.evaluate import evaluate_policy, format_table
+    from stepnft.evaluate import RenderingError, evaluate_policy, format_table, record_videos
     from stepnft.policies.flow import FlowPolicy
     from stepnft.train import language_table
 
     args = _tyro(EvalArgs, argv, EvalArgs(), "stepnft eval")
     tasks = validate_tasks(args.tasks[0] if len(args.tasks) == 1 else args.tasks)
     policy = FlowPolicy.from_pretrained(args.policy)
+    # Fail on an unwritable output before spending time on episodes.
+    out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
+    video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None
     cfg = TrainConfig(language_encoder=args.language_encoder, policy=policy.config)
-    venv = make_metaworld_vec_env(tasks, args.envs_per_task, policy.config.n_exec, args.max_episode_steps, seed=args.seed, autoreset=False)
-    result = evaluate_policy(policy, venv, language_table(cfg, tasks), args.episodes, args.seed)
-    print(format_table(None, result))
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=2))
+    lang_table = language_table(cfg, tasks)
+    if args.episodes > 0:
+        venv = make_metaworld_vec_env(tasks, args.envs_per_task, policy.config.n_exec, args.max_episode_steps,
+                                      seed=args.seed, autoreset=False)
+        result = evaluate_policy(policy, venv, lang_table, args.episodes, args.seed)
+        venv.close()
+        print(format_table(None, result))
+        if out:
+            write_atomic(out, json.dumps(result, indent=2))
+    if video_dir:
+        try:
+            paths = record_videos(policy, tasks, video_dir, lang_table, seed=args.seed, episodes=args.video_episodes,
+                                  max_episode_steps=args.max_episode_steps)
+        except RenderingError as err:  # the machine, not the input: exit code 1
+            print(f"stepnft eval: error: {err}", file=sys.stderr)
+            return 1
+        print(f"wrote {len(paths)} videos to {video_dir}")
     return 0
+
+
+def _writable_dir(path: str | Path, flag: str) -> Path:
+    """Create folder ``path`` if needed and check a file can be written there."""
+    from stepnft.train import prepare_run_dir
+
+    try:
+        return prepare_run_dir(path)
+    except ValueError as err:
+        reason = getattr(err.__cause__, "strerror", None) or err
+        raise UsageError(f"cannot write to {path} ({reason}): choose another {flag}") from err
 
 
 def cmd_demo_bandit(argv: list[str]) -> int:
@@ -184,8 +309,10 @@ HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_
 
 def _usage() -> str:
     rows = "\n".join(f"  {name:<12} {text}" for name, text in COMMANDS.items())
+    sections = ", ".join(f"--{name}.*" for name in CONFIG_SECTIONS)
     return (f"usage: stepnft COMMAND [flags]   (stepnft COMMAND --help lists every flag)\n\n"
-            f"Online RL fine-tuning of flow-matching robot policies with π-StepNFT.\n\ncommands:\n{rows}\n")
+            f"Online RL fine-tuning of flow-matching robot policies with π-StepNFT.\n\ncommands:\n{rows}\n\n"
+            f"sft and train read --config FILE.yaml, then flags by section: {sections}\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -199,7 +326,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return HANDLERS[command](rest)
-    except (UsageError, ValueError, FileNotFoundError) as err:
+    except SystemExit as stop:
+        # tyro ends --help with code 0 and its own argument errors (after printing them) with 2.
+        return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
+    except (UsageError, ValueError, OSError) as err:
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"stepnft {command}: error: {message}", file=sys.stderr)
         return 2

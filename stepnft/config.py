@@ -98,14 +98,17 @@ class TrainConfig:
     """RL iterations: collect rollouts -> update epochs -> EMA update."""
     episodes_per_iteration: int = 20
     """Episodes collected per iteration (rounded up to a multiple of the number of envs)."""
+    env_step_budget: int | None = None
+    """Stop once this many rollout env steps were spent (None: run all iterations); the
+    same budget for every algorithm makes comparisons fair."""
     init: str | None = None
     """SFT policy folder to start from; None: run few-shot SFT on the demonstrations first."""
     language_encoder: str = "default"
     """Frozen sentence encoder: 'default' (packaged all-MiniLM-L6-v2) or a local folder."""
     checkpoint_every: int = 10
     """Iterations between checkpoints (the last one is always written)."""
-    num_threads: int = 2
-    """torch CPU threads."""
+    num_threads: int = 1
+    """torch CPU threads (the policy is small: one thread is fastest, and leaves a core to the simulator)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
     policy: FlowPolicyConfig = field(default_factory=FlowPolicyConfig)

@@ -2,17 +2,20 @@
 
 Episode ``e`` of every task starts from initial state ``seed + e``, whatever the checkpoint or
 algorithm, so figures from different runs are paired. Success rates come with a Wilson 95 %
-confidence interval.
+confidence interval. :func:`record_videos` films ODE episodes from the same initial states.
 """
 
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from stepnft.envs.metaworld import SIM_STEPS_PER_SECOND, MetaWorldChunkEnv
 from stepnft.policies.flow import FlowPolicy
 from stepnft.rollout.collector import run_wave
 
@@ -85,3 +88,88 @@ def format_table(before: dict | None, after: dict) -> str:
     avg_b = f"{before['average']:.3f}" if before else "-"
     lines.append(f"{'average':<18} {avg_b:>22} {after['average']:>22.3f}")
     return "\n".join(lines)
+
+
+class RenderingError(RuntimeError):
+    """Offscreen rendering is unavailable on this machine."""
+
+
+def record_videos(
+    policy: FlowPolicy,
+    tasks: list[str],
+    out_dir: str | Path,
+    lang_table: Tensor | None,
+    seed: int = 0,
+    episodes: int = 1,
+    max_episode_steps: int = 200,
+    width: int = 224,
+    height: int = 224,
+) -> list[Path]:
+    """Film ODE episodes as ``out_dir/<task>_ep<e>_<success|fail>.mp4``; returns the paths.
+
+    Episode ``e`` of a task starts from evaluation initial state ``seed + e``; its sampler noise
+    is its own, so its outcome may differ from that episode's in :func:`evaluate_policy`. A
+    frame at reset and one after every env step (the chunk's actions are played one at a
+    time), at the simulator's real-time rate. ``lang_table`` rows follow ``tasks``.
+    """
+    import imageio.v2 as imageio
+
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless; read when the first renderer is made
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    policy.eval()
+    paths = []
+    for k, task in enumerate(tasks):
+        env = MetaWorldChunkEnv(task, n_exec=1, max_episode_steps=max_episode_steps, render_mode="rgb_array",
+                                camera_name="corner2", width=width, height=height)
+        try:
+            _prepare_renderer(env)
+            lang = lang_table[k : k + 1] if lang_table is not None else None
+            for e in range(episodes):
+                generator = torch.Generator().manual_seed(seed * 100_003 + e)
+                frames, success = _play_filmed(policy, env, lang, seed + e, generator)
+                outcome = "success" if success else "fail"
+                path = out_dir / f"{task}_ep{e}_{outcome}.mp4"
+                tmp = out_dir / f".{path.stem}.tmp.mp4"
+                with imageio.get_writer(tmp, fps=SIM_STEPS_PER_SECOND, codec="libx264") as writer:
+                    for frame in frames:
+                        writer.append_data(frame)
+                os.replace(tmp, path)
+                (out_dir / f"{task}_ep{e}_{'fail' if success else 'success'}.mp4").unlink(missing_ok=True)
+                paths.append(path)
+        finally:
+            env.close()  # frees the GL context now; MuJoCo's EGL complains if left to __del__
+    return paths
+
+
+def _prepare_renderer(env: MetaWorldChunkEnv) -> None:
+    """Create the offscreen viewer and turn shadows and reflections off (about 3x faster)."""
+    import mujoco
+
+    try:
+        env.reset(seed=0)
+        env.render()
+    except Exception as err:  # noqa: BLE001 - GL failures come as several error types
+        raise RenderingError(f"offscreen rendering failed ({str(err).splitlines()[0]}): set MUJOCO_GL=egl "
+                             "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)") from err
+    # MetaWorld's gymnasium MujocoRenderer keeps the viewer it made for "rgb_array" in `.viewer`.
+    scene = env._sim.mujoco_renderer.viewer.scn
+    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+
+
+def _play_filmed(policy: FlowPolicy, env: MetaWorldChunkEnv, lang: Tensor | None, seed: int,
+                 generator: torch.Generator) -> tuple[list[np.ndarray], bool]:
+    """One ODE episode on a one-action ``env``; frames ``[H, W, 3]`` uint8 and its success."""
+    obs, info = env.reset(seed=seed)
+    frames = [env.render()]
+    done = False
+    while not done:
+        sample = policy.sample(torch.as_tensor(obs[None]), lang, noise_level=0.0, generator=generator)
+        for action in sample.actions[0, : policy.config.n_exec].clamp(-1.0, 1.0).numpy():
+            obs, _, terminated, truncated, info = env.step(action[None])
+            frames.append(env.render())
+            done = terminated or truncated
+            if done:
+                break
+    return frames, bool(info["success"])

@@ -92,11 +92,15 @@ class MetricLogger:
         from torch.utils.tensorboard import SummaryWriter
 
         self.path = run_dir / "metrics.jsonl"
+        kept = []
         if resume_iteration is not None and self.path.is_file():
             # Drop records written after the checkpoint we resume from: they will be redone.
-            kept = [l for l in self.path.read_text().splitlines() if l and json.loads(l).get("iteration", 0) <= resume_iteration]
-            write_atomic(self.path, "".join(l + "\n" for l in kept))
-        self.writer = SummaryWriter(str(run_dir / "tb"))
+            kept = [json.loads(l) for l in self.path.read_text().splitlines() if l]
+            kept = [r for r in kept if r.get("iteration", 0) <= resume_iteration and not r.get("final")]
+        write_atomic(self.path, "".join(json.dumps(r) + "\n" for r in kept))
+        # TensorBoard drops the events a killed run wrote past the checkpoint, as above.
+        purge_step = max((int(r.get("env_steps", 0)) for r in kept), default=-1) + 1
+        self.writer = SummaryWriter(str(run_dir / "tb"), purge_step=purge_step if kept else None)
 
     def log(self, record: dict) -> None:
         step = int(record.get("env_steps", 0))
@@ -173,6 +177,9 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         start_it, env_steps, before = state["iteration"], state["env_steps"], state["before"]
         log(f"resuming {run_dir} from iteration {start_it} ({env_steps} env steps)")
     else:
+        if (run_dir / "checkpoints" / "LATEST").is_file():
+            raise ValueError(f"{run_dir} already holds a run with checkpoints: continue it with "
+                             f"`stepnft train --resume {run_dir}`, or choose another --run-dir")
         save_config(cfg, run_dir / "config.yaml")
         policy = FlowPolicy.from_pretrained(cfg.init) if cfg.init else sft_policy(cfg, tasks, lang_table, log)
         policy.save_pretrained(run_dir / "sft_policy")
@@ -187,11 +194,16 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
                     **{f"eval/{t}": r["success"] for t, r in before["tasks"].items()}})
 
     t_start = time.perf_counter()
+    out_of_budget = lambda: cfg.env_step_budget is not None and env_steps >= cfg.env_step_budget  # noqa: E731
+    iteration = start_it
     bar = tqdm(range(start_it, cfg.iterations), desc="π-StepNFT", initial=start_it, total=cfg.iterations)
     for it in bar:
+        if out_of_budget():  # a resumed run that had already spent its budget
+            break
         t0 = time.perf_counter()
         ema.eval()
-        waves = [run_wave(ema, venv, lang_table, cfg.algo.noise_level, gen, record=True) for _ in range(waves_per_iter)]
+        waves = [run_wave(ema, venv, lang_table, cfg.algo.noise_level, gen, record=True,
+                          stochastic_steps=cfg.algo.sde_steps) for _ in range(waves_per_iter)]
         batch = concat_transitions(waves)
         if lang_table is not None:
             batch["lang"] = lang_table[batch["task_id"]]
@@ -215,7 +227,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             "time/rollout_s": t1 - t0, "time/update_s": t2 - t1,
             **{f"losses/{k}": v for k, v in metrics.items()},
         }
-        last = it + 1 == cfg.iterations
+        iteration = it + 1
+        last = iteration == cfg.iterations or out_of_budget()
         if cfg.eval.every and (it + 1) % cfg.eval.every == 0 and not last:
             ev = evaluate(ema if cfg.eval.use_ema else policy, cfg.eval.during_episodes)
             record["charts/success_rate"] = ev["average"]
@@ -228,12 +241,14 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             state = {"env_steps": env_steps, "before": before, "env_rng": get_rng_states(venv)}
             save_checkpoint(run_dir, it + 1, policy, ema, optimizer, state,
                             {"generator": gen.get_state(), "torch": torch.get_rng_state()})
+        if last:
+            break
     bar.close()
 
     final_policy = ema if cfg.eval.use_ema else policy
     after = evaluate(final_policy, cfg.eval.episodes)
     final_policy.save_pretrained(run_dir / "policy")
-    logger.log({"iteration": cfg.iterations, "env_steps": env_steps, "charts/success_rate": after["average"], "final": True,
+    logger.log({"iteration": iteration, "env_steps": env_steps, "charts/success_rate": after["average"], "final": True,
                 **{f"eval/{t}": r["success"] for t, r in after["tasks"].items()}})
     logger.close()
     plot_learning_curve(run_dir)
@@ -241,7 +256,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t]} for t in tasks},
         "average": {"before": before["average"], "after": after["average"]},
         "eval_episodes_per_task": cfg.eval.episodes, "env_steps": env_steps,
-        "wall_clock_s_this_session": time.perf_counter() - t_start, "seed": cfg.seed, "iterations": cfg.iterations,
+        "wall_clock_s_this_session": time.perf_counter() - t_start, "seed": cfg.seed, "iterations": iteration,
     }
     write_atomic(run_dir / "summary.json", json.dumps(summary, indent=2))
     log("before -> after:\n" + format_table(before, after))

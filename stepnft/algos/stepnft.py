@@ -20,6 +20,10 @@ class StepNFTConfig:
 
     noise_level: float = 0.2
     """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
+    sde_steps: str = "all"
+    """Which denoising steps of a rollout are stochastic: ``all`` (paper) or, beyond SPEC,
+    ``one``: only the recorded step, the others ODE (as πRL does), so the recorded step's
+    noise is the only exploration of that policy call."""
     beta: float = 1.0
     """Trust factor β of the mirrored candidates ``v_old ± β Δc``."""
     beta_dpo: float = 1.0
@@ -70,6 +74,7 @@ class StepNFTConfig:
             "target": self.target in ("next", "x0"),
             "form": self.form in ("rank", "wmse"),
             "label_balance": self.label_balance in ("none", "global", "task"),
+            "sde_steps": self.sde_steps in ("all", "one"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

@@ -1,0 +1,206 @@
+"""The ``stepnft`` command line: help, and bad input ending in one line on stderr, exit code 2,
+with nothing already written lost."""
+
+import dataclasses
+import json
+import shutil
+
+import pytest
+import torch
+
+from stepnft.checkpoint import save_checkpoint
+from stepnft.cli import COMMANDS, CONFIG_SECTIONS, main
+from stepnft.config import EnvConfig, TrainConfig, save_config
+from stepnft.envs.metaworld import get_rng_states, make_metaworld_vec_env
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+
+
+def run_cli(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def snapshot(folder) -> dict:
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def tiny_policy() -> FlowPolicy:
+    torch.manual_seed(0)
+    return FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    """A finished-looking run (config, checkpoint, metrics, summary), a saved policy, a file."""
+    root = tmp_path_factory.mktemp("cli")
+    run = root / "run"
+    cfg = TrainConfig(run_dir=str(run), iterations=2, num_threads=1,
+                      env=EnvConfig(tasks=["reach-v3"], envs_per_task=1, max_episode_steps=10),
+                      policy=FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    run.mkdir()
+    save_config(cfg, run / "config.yaml")
+    policy = tiny_policy()
+    rng = {"generator": torch.Generator().get_state(), "torch": torch.get_rng_state()}
+    venv = make_metaworld_vec_env(["reach-v3"], 1, max_episode_steps=10, autoreset=False)
+    save_checkpoint(run, 2, policy, tiny_policy(), torch.optim.AdamW(policy.parameters()),
+                    {"env_steps": 20, "before": {}, "env_rng": get_rng_states(venv)}, rng)
+    venv.close()
+    (run / "metrics.jsonl").write_text(json.dumps({"iteration": 0, "env_steps": 0}) + "\n")
+    (run / "summary.json").write_text("{}")
+    policy.save_pretrained(root / "policy")
+    (root / "a-file").write_text("not a folder")
+    return root
+
+
+@pytest.fixture
+def existing_run(workspace):
+    """The run folder; the test fails if a command changed or removed anything in it."""
+    run = workspace / "run"
+    before = snapshot(run)
+    yield run
+    after = snapshot(run)
+    assert {k: after.get(k) for k in before} == before
+
+
+def assert_one_line_error(code, err, command):
+    assert code == 2
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"stepnft {command}: error: "), err
+    return lines[0]
+
+
+def test_help_lists_every_command_and_config_section(capsys):
+    code, out, _ = run_cli(capsys, "--help")
+    assert code == 0
+    assert all(name in out for name in COMMANDS)
+    assert set(CONFIG_SECTIONS) == {f.name for f in dataclasses.fields(TrainConfig)
+                                    if dataclasses.is_dataclass(getattr(TrainConfig(), f.name))}
+    assert all(f"--{s}.*" in out for s in CONFIG_SECTIONS)
+
+    code, out, _ = run_cli(capsys, "train", "--help")
+    assert code == 0
+    assert all(f"--{s}." in out for s in CONFIG_SECTIONS)
+    assert "--config" in out and "--resume" in out
+    for command in ("sft", "eval", "demos", "demo-bandit"):
+        assert run_cli(capsys, command, "--help")[0] == 0
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["train", "--env.tasks", "reach-v3", "nope-v3"], "unknown MetaWorld task 'nope-v3'; valid names: assembly-v3"),
+    (["train", "--algo.lr", "-1"], "algo.lr=-1.0 is invalid"),
+    (["train", "--env.max-episode-steps", "900"], "env.max_episode_steps must be in 1..500, got 900"),
+    (["train", "--iterations", "-1"], "iterations must be >= 0"),
+    (["sft", "--policy.n-exec", "9"], "policy.n_exec (9) must be <= policy.horizon (4)"),
+    (["eval", "--tasks", "nope-v3"], "unknown MetaWorld task 'nope-v3'"),
+    (["eval", "--episodes", "-1"], "episodes must be >= 0"),
+])
+def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
+    command = argv[0]
+    if command != "eval":
+        argv = argv + ["--run-dir", str(existing_run)]
+    line = assert_one_line_error(*run_cli(capsys, *argv)[::2], command)
+    assert expected in line
+
+
+@pytest.mark.parametrize("yaml_text, expected", [
+    ("iterations: 3\nnot_a_key: 1\n", "unknown config key 'not_a_key'"),
+    ("algo:\n  lrr: 0.1\n", "unknown config key 'algo.lrr'"),
+    ("iterations: many\n", "iterations='many' has the wrong type, expected int"),
+    ("env:\n  tasks: 5\n", "env.tasks=5 has the wrong type"),
+    ("algo:\n  lr: -1\n", "algo.lr=-1.0 is invalid"),
+    ("iterations: [1\n", "is not valid YAML"),
+])
+def test_bad_yaml_configs_are_one_line(capsys, tmp_path, existing_run, yaml_text, expected):
+    config = tmp_path / "config.yaml"
+    config.write_text(yaml_text)
+    line = assert_one_line_error(*run_cli(capsys, "train", "--config", config, "--run-dir", existing_run)[::2], "train")
+    assert expected in line
+    line = assert_one_line_error(*run_cli(capsys, "train", "--config", tmp_path / "missing.yaml")[::2], "train")
+    assert "not found" in line
+
+
+def test_a_yaml_config_is_read_and_flags_override_it(tmp_path):
+    from stepnft.cli import _config_from_argv
+
+    config = tmp_path / "config.yaml"
+    config.write_text("iterations: 7\nenv:\n  tasks: reach-v3,push-v3\nalgo:\n  lr: 0.001\n")
+    cfg, resume = _config_from_argv(["--config", str(config), "--algo.lr", "0.002"], "stepnft train", True)
+    assert not resume and cfg.iterations == 7 and cfg.env.tasks == ["reach-v3", "push-v3"] and cfg.algo.lr == 0.002
+
+
+def test_missing_or_corrupt_policy_for_eval(capsys, workspace, tmp_path):
+    line = assert_one_line_error(*run_cli(capsys, "eval", "--policy", tmp_path / "nowhere")[::2], "eval")
+    assert "no policy checkpoint at" in line
+
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(workspace / "policy", corrupt)
+    (corrupt / "model.safetensors").write_bytes(b"\x00garbage" * 10)
+    line = assert_one_line_error(*run_cli(capsys, "eval", "--policy", corrupt)[::2], "eval")
+    assert "corrupt policy checkpoint" in line
+
+    (corrupt / "config.json").write_text("{not json")
+    assert "corrupt policy checkpoint" in assert_one_line_error(*run_cli(capsys, "eval", "--policy", corrupt)[::2], "eval")
+
+
+def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", tmp_path / "nowhere")[::2], "train")
+    assert "no config.yaml there" in line
+
+    started = tmp_path / "started"
+    started.mkdir()
+    shutil.copy(workspace / "run" / "config.yaml", started)
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", started)[::2], "train")
+    assert "no checkpoint to resume" in line
+
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
+    assert "takes no other flags; drop: --iterations 9" in line
+
+
+def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(workspace / "run", run)
+    (run / "checkpoints" / "iter_000002" / "policy" / "model.safetensors").write_bytes(b"garbage")
+    before = snapshot(run)
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", run)[::2], "train")
+    assert "is corrupt or incomplete" in line
+    after = snapshot(run)
+    assert {k: after.get(k) for k in before} == before
+
+
+def test_unwritable_outputs_fail_before_any_work(capsys, workspace):
+    under_a_file = workspace / "a-file" / "sub"
+    policy = workspace / "policy"
+    cases = [
+        (["train", "--run-dir", under_a_file, "--env.tasks", "reach-v3"], "train", "choose another --run-dir"),
+        (["sft", "--run-dir", under_a_file], "sft", "choose another --run-dir"),
+        (["demos", "--out", under_a_file, "--tasks", "reach-v3"], "demos", "choose another --out"),
+        (["eval", "--policy", policy, "--tasks", "reach-v3", "--out", under_a_file / "r.json"], "eval", "choose another --out"),
+        (["eval", "--policy", policy, "--tasks", "reach-v3", "--video-dir", under_a_file], "eval", "choose another --video-dir"),
+    ]
+    for argv, command, expected in cases:
+        line = assert_one_line_error(*run_cli(capsys, *argv)[::2], command)
+        assert f"cannot write to {under_a_file}" in line and expected in line
+    assert (workspace / "a-file").read_text() == "not a folder"
+
+
+@pytest.mark.parametrize("argv", [["train", "--iterations", "notanint"], ["train", "--no-such-flag", "1"],
+                                  ["eval", "--episodes", "x"]])
+def test_tyro_argument_errors_exit_2_without_traceback(capsys, argv):
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 2 and err and "Traceback" not in err
+
+
+def test_unknown_command(capsys):
+    code, _, err = run_cli(capsys, "trian")
+    assert code == 2 and err.startswith("stepnft: error: unknown command 'trian'") and "train" in err
+
+
+def test_eval_writes_its_results(capsys, workspace, tmp_path):
+    out = tmp_path / "results" / "eval.json"
+    code, stdout, _ = run_cli(capsys, "eval", "--policy", workspace / "policy", "--tasks", "reach-v3", "--episodes", 3,
+                              "--envs-per-task", 2, "--max-episode-steps", 10, "--out", out)
+    assert code == 0 and "reach-v3" in stdout
+    result = json.loads(out.read_text())
+    assert result["tasks"]["reach-v3"]["episodes"] == 3 and result["episodes"] == 3

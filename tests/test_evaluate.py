@@ -1,0 +1,107 @@
+"""Evaluation: Wilson intervals, determinism on fixed initial states, rollout videos."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from stepnft.envs.metaworld import make_metaworld_vec_env
+from stepnft.evaluate import RenderingError, evaluate_policy, format_table, record_videos, wilson_interval
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+from stepnft.rollout.collector import run_wave
+
+GOAL, HAND = slice(36, 39), slice(0, 3)
+
+
+class GoalSeeker(FlowPolicy):
+    """A random flow policy steered toward the reach goal: whether an episode succeeds depends
+    on its initial state and on the sampler's noise."""
+
+    def sample(self, state, lang=None, noise_level=0.0, generator=None, stochastic_steps="all"):
+        out = super().sample(state, lang, noise_level, generator, stochastic_steps)
+        out.actions[..., :3] += 10.0 * (state[:, None, GOAL] - state[:, None, HAND])
+        return out
+
+
+def goal_seeker() -> GoalSeeker:
+    torch.manual_seed(0)
+    return GoalSeeker(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+
+
+def wilson_by_quadratic(k: int, n: int, z: float) -> tuple[float, float]:
+    """The interval's ends are the p with |k/n - p| = z sqrt(p (1 - p) / n): roots of a quadratic."""
+    p_hat = k / n
+    a, b, c = n + z**2, -(2 * n * p_hat + z**2), n * p_hat**2
+    root = math.sqrt(b**2 - 4 * a * c)
+    return (-b - root) / (2 * a), (-b + root) / (2 * a)
+
+
+@pytest.mark.parametrize("k, n", [(0, 10), (10, 10), (5, 10), (50, 100), (3, 7), (97, 100)])
+def test_wilson_interval_on_known_counts(k, n):
+    lo, hi = wilson_interval(k, n)
+    assert (lo, hi) == pytest.approx(wilson_by_quadratic(k, n, 1.96), abs=1e-12)
+    assert 0 <= lo <= k / n <= hi <= 1
+    stats = pytest.importorskip("scipy.stats")
+    ci = stats.binomtest(k, n).proportion_ci(method="wilson")
+    assert wilson_interval(k, n, z=stats.norm.ppf(0.975)) == pytest.approx((ci.low, ci.high), abs=1e-12)
+
+
+def test_wilson_interval_known_values():
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.27754), abs=1e-5)
+    assert wilson_interval(5, 10) == pytest.approx((0.23659, 0.76341), abs=1e-5)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_evaluation_depends_only_on_the_policy_and_the_eval_seed():
+    policy = goal_seeker()
+    venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=0, autoreset=False)
+    reset_seeds = []
+    reset = venv.reset
+    venv.reset = lambda seed=None, **kw: (reset_seeds.append(seed), reset(seed=seed, **kw))[1]
+
+    first = evaluate_policy(policy, venv, None, episodes=5, seed=3)
+    # Episode e starts from state seed + e; the third wave's second sub-env plays a spare episode.
+    assert reset_seeds == [[3, 4], [5, 6], [7, 8]]
+    assert first["tasks"]["reach-v3"]["episodes"] == 5
+    assert 0 < first["tasks"]["reach-v3"]["successes"] < 5, "the check below needs mixed outcomes"
+
+    run_wave(policy, venv, None, 0.2, torch.Generator().manual_seed(1))  # a training wave moves the env streams
+    again = evaluate_policy(policy, venv, None, episodes=5, seed=3)
+    other_venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=12345, autoreset=False)
+    fresh = evaluate_policy(policy, other_venv, None, episodes=5, seed=3)
+    assert first == again == fresh
+    assert "reach-v3" in format_table(first, fresh)
+    venv.close()
+    other_venv.close()
+
+
+def test_initial_states_depend_only_on_the_reset_seeds():
+    a = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=0, autoreset=False)
+    b = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=99, autoreset=False)
+    unseeded_a, _ = a.reset()
+    unseeded_b, _ = b.reset()
+    assert not np.array_equal(unseeded_a, unseeded_b)  # the construction seeds do matter...
+    seeds = [0, 1, 0, 1]
+    obs_a, _ = a.reset(seed=seeds)
+    obs_b, _ = b.reset(seed=seeds)
+    np.testing.assert_array_equal(obs_a, obs_b)  # ...but not once the resets are seeded
+    assert not np.array_equal(obs_a[0, GOAL], obs_a[1, GOAL])
+    a.close()
+    b.close()
+
+
+def test_record_videos_writes_one_frame_per_env_step(tmp_path, monkeypatch):
+    import imageio.v3 as iio
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    try:
+        paths = record_videos(goal_seeker(), ["reach-v3"], tmp_path / "videos", None, seed=0, episodes=1,
+                              max_episode_steps=10, width=64, height=64)
+    except RenderingError as err:
+        pytest.skip(f"no offscreen rendering here (EGL): {err}")
+    assert paths == [tmp_path / "videos" / "reach-v3_ep0_fail.mp4"]  # 10 steps cannot reach the goal
+    frames = list(iio.imiter(paths[0]))
+    assert len(frames) == 1 + 10  # the reset, then every env step
+    assert frames[0].shape == (64, 64, 3) and frames[-1].std() > 0
+    assert sorted(p.name for p in (tmp_path / "videos").iterdir()) == ["reach-v3_ep0_fail.mp4"]

@@ -1,0 +1,190 @@
+"""The main job end to end on a tiny budget: artefacts, resume after a crash, atomic checkpoints,
+and few-shot SFT on demonstrations."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+import stepnft.checkpoint
+import stepnft.train
+from stepnft.algos.sft import SFTConfig, sft_train
+from stepnft.checkpoint import load_checkpoint, save_checkpoint
+from stepnft.cli import _config_from_argv, main
+from stepnft.config import load_config
+from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+
+pytestmark = pytest.mark.filterwarnings("ignore:Constant:UserWarning")
+
+ITERATIONS = 4
+
+
+def tiny_train_args(run_dir, demos) -> list[str]:
+    """One task, two envs, 30-step episodes, a 64-wide policy: about 10 s per run on one core."""
+    return [
+        "train", "--run-dir", str(run_dir), "--demos.path", str(demos), "--demos.episodes", "2",
+        "--iterations", str(ITERATIONS), "--checkpoint-every", "2", "--episodes-per-iteration", "2",
+        "--env.tasks", "reach-v3", "--env.envs-per-task", "2", "--env.max-episode-steps", "30",
+        "--policy.hidden-dim", "64", "--sft.steps", "30", "--sft.batch-size", "64",
+        "--algo.minibatch-size", "32", "--eval.episodes", "2", "--eval.every", "2",
+        "--eval.during-episodes", "2", "--num-threads", "1",
+    ]
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    # Generated here with room to succeed: episodes of the runs are capped much shorter.
+    return generate_demos("reach-v3", episodes=2, out_dir=tmp_path_factory.mktemp("demos"), progress=False)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory, demos):
+    run_dir = tmp_path_factory.mktemp("runs") / "whole"
+    assert main(tiny_train_args(run_dir, demos)) == 0
+    return run_dir
+
+
+def read_metrics(run_dir) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_train_writes_every_artefact(finished_run, demos):
+    run_dir = finished_run
+
+    cfg = load_config(run_dir / "config.yaml")
+    assert cfg == _config_from_argv(tiny_train_args(run_dir, demos)[1:], "stepnft train", True)[0]
+    assert cfg.iterations == ITERATIONS and cfg.env.tasks == ["reach-v3"] and cfg.policy.hidden_dim == 64
+
+    assert list((run_dir / "tb").glob("events.out.tfevents.*"))
+
+    records = read_metrics(run_dir)
+    assert [r["iteration"] for r in records] == [0, 1, 2, 3, 4, 4]
+    assert "charts/success_rate" in records[0] and records[-1]["final"]
+    for r in records[1:-1]:
+        for key in ("charts/rollout_success_rate", "losses/E_pos", "losses/E_neg", "losses/delta_v_norm",
+                    "charts/ema_decay", "env_steps"):
+            assert np.isfinite(r[key]), key
+    assert "charts/success_rate" in records[2] and "charts/success_rate" not in records[1]  # eval.every 2
+    env_steps = [r["env_steps"] for r in records[1:-1]]
+    assert env_steps == sorted(env_steps) and env_steps[0] > 0
+
+    ckpts = run_dir / "checkpoints"
+    assert (ckpts / "LATEST").read_text().strip() == "iter_000004"
+    assert sorted(p.name for p in ckpts.iterdir()) == ["LATEST", "iter_000002", "iter_000004"]
+    assert json.loads((ckpts / "iter_000004" / "state.json").read_text())["iteration"] == ITERATIONS
+    assert load_file(str(ckpts / "iter_000004" / "optimizer.safetensors"))  # safetensors, not pickle
+
+    assert (run_dir / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    summary = json.loads((run_dir / "summary.json").read_text())
+    for when in ("before", "after"):
+        task = summary["tasks"]["reach-v3"][when]
+        assert task["episodes"] == 2 and 0 <= task["success"] <= 1 and len(task["ci95"]) == 2
+    assert summary["env_steps"] == records[-1]["env_steps"]
+
+    final, sft = FlowPolicy.from_pretrained(run_dir / "policy"), FlowPolicy.from_pretrained(run_dir / "sft_policy")
+    assert final.config == sft.config and final.config.hidden_dim == 64
+    assert any(not torch.equal(a, b) for a, b in zip(final.state_dict().values(), sft.state_dict().values()))
+
+
+class Crash(Exception):
+    pass
+
+
+def test_resume_after_a_crash_redoes_the_lost_iterations_exactly(finished_run, demos, tmp_path, monkeypatch):
+    """Killed in iteration 4 (after the checkpoint at 2), then moved: the resumed run drops the
+    records of 3, redoes 3 and 4, and ends with the weights of the uninterrupted run (every RNG
+    restored)."""
+    run_dir = tmp_path / "crashed"
+    update, calls = stepnft.train.stepnft_update, []
+
+    def crash_on_fourth_call(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            raise Crash
+        return update(*args, **kwargs)
+
+    monkeypatch.setattr(stepnft.train, "stepnft_update", crash_on_fourth_call)
+    with pytest.raises(Crash):
+        main(tiny_train_args(run_dir, demos))
+    assert [r["iteration"] for r in read_metrics(run_dir)] == [0, 1, 2, 3]
+    assert (run_dir / "checkpoints" / "LATEST").read_text().strip() == "iter_000002"
+    monkeypatch.setattr(stepnft.train, "stepnft_update", update)
+
+    run_dir = run_dir.rename(tmp_path / "moved")  # config.yaml still names the old folder
+    assert main(["train", "--resume", str(run_dir)]) == 0
+
+    records = read_metrics(run_dir)
+    assert [r["iteration"] for r in records if not r.get("final")] == [0, 1, 2, 3, 4]
+    assert [r.get("final", False) for r in records] == [False] * 5 + [True]
+    assert (run_dir / "checkpoints" / "LATEST").read_text().strip() == "iter_000004"
+    assert load_checkpoint(run_dir, lambda p: torch.optim.AdamW(p.parameters()))["state"]["iteration"] == ITERATIONS
+
+    whole = read_metrics(finished_run)
+    for mine, theirs in zip(records, whole):
+        assert mine["env_steps"] == theirs["env_steps"]
+        assert {k: v for k, v in mine.items() if k.startswith("losses/")} == \
+               {k: v for k, v in theirs.items() if k.startswith("losses/")}
+    resumed = FlowPolicy.from_pretrained(run_dir / "policy").state_dict()
+    uninterrupted = FlowPolicy.from_pretrained(finished_run / "policy").state_dict()
+    for name in uninterrupted:
+        assert torch.equal(resumed[name], uninterrupted[name]), name
+
+
+def test_a_new_run_refuses_a_folder_holding_a_run(finished_run, demos, capsys):
+    before = (finished_run / "config.yaml").read_text()
+    assert main(tiny_train_args(finished_run, demos)) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert (finished_run / "config.yaml").read_text() == before
+
+
+def _tiny_policy(seed: int) -> FlowPolicy:
+    torch.manual_seed(seed)
+    return FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+
+
+def test_a_failed_checkpoint_write_leaves_the_previous_one(tmp_path, monkeypatch):
+    policy, ema = _tiny_policy(0), _tiny_policy(1)
+    optimizer = torch.optim.AdamW(policy.parameters())
+    policy(torch.zeros(1, 39), None, torch.zeros(1, 4, 4), torch.ones(1)).sum().backward()
+    optimizer.step()
+    rng = {"generator": torch.Generator().manual_seed(0).get_state(), "torch": torch.get_rng_state()}
+    save_checkpoint(tmp_path, 1, policy, ema, optimizer, {"env_steps": 10}, rng)
+    saved = {k: v.clone() for k, v in policy.state_dict().items()}
+
+    def killed_mid_write(*args, **kwargs):
+        raise Crash
+
+    with monkeypatch.context() as patch:
+        patch.setattr(stepnft.checkpoint, "save_file", killed_mid_write)
+        with torch.no_grad():
+            for p in policy.parameters():
+                p.add_(1.0)
+        with pytest.raises(Crash):
+            save_checkpoint(tmp_path, 2, policy, ema, optimizer, {"env_steps": 20}, rng)
+    # A writer killed outright leaves its temporary folder: it must not matter.
+    (tmp_path / "checkpoints" / ".tmp-killed" / "policy").mkdir(parents=True)
+
+    root = tmp_path / "checkpoints"
+    assert (root / "LATEST").read_text() == "iter_000001"
+    assert sorted(p.name for p in root.iterdir() if not p.name.startswith(".")) == ["LATEST", "iter_000001"]
+    ckpt = load_checkpoint(tmp_path, lambda p: torch.optim.AdamW(p.parameters()))
+    assert ckpt["state"]["iteration"] == 1 and ckpt["state"]["env_steps"] == 10
+    assert all(torch.equal(ckpt["policy"].state_dict()[k], saved[k]) for k in saved)
+
+    save_checkpoint(tmp_path, 2, policy, ema, optimizer, {"env_steps": 20}, rng)
+    assert (root / "LATEST").read_text() == "iter_000002"
+    assert not list(root.glob(".tmp-*"))
+    assert load_checkpoint(tmp_path, lambda p: torch.optim.AdamW(p.parameters()))["state"]["env_steps"] == 20
+
+
+def test_sft_loss_falls_on_demonstrations(demos):
+    torch.manual_seed(0)
+    data = demos_to_chunks(load_demos(demos), ["reach-v3"], horizon=4)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=64))
+    policy.set_normalization(data["state"])
+    losses = sft_train(policy, data, SFTConfig(steps=150, batch_size=64, lr=1e-3), torch.Generator().manual_seed(0))
+    assert np.mean(losses[-20:]) < 0.7 * np.mean(losses[:20])
