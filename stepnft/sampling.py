@@ -78,6 +78,23 @@ class ChunkSample:
     t: Tensor
     dt: Tensor
     v_old: Tensor
+    path_x: Tensor | None = None
+    """``[B, K + 1, H, A]``: the chunk at every grid time ``t_k`` (only with ``keep_path``)."""
+    path_v: Tensor | None = None
+    """``[B, K, H, A]``: the velocity used at every step (only with ``keep_path``)."""
+
+    def all_steps(self) -> dict[str, Tensor]:
+        """Every denoising step as a transition, flattened to ``[B * K]`` (sample-major):
+        ``x_t``, ``x_next``, ``v_old`` ``[B*K, H, A]``, ``t``, ``dt`` ``[B*K]``, ``sample`` (index)."""
+        if self.path_x is None or self.path_v is None:
+            raise ValueError("sample with keep_path=True to get every step")
+        b, k = self.path_v.shape[:2]
+        t = (1.0 - torch.arange(k, device=self.path_v.device) / k).repeat(b)
+        return {
+            "x_t": self.path_x[:, :-1].flatten(0, 1), "x_next": self.path_x[:, 1:].flatten(0, 1),
+            "v_old": self.path_v.flatten(0, 1), "t": t, "dt": torch.full_like(t, 1.0 / k),
+            "sample": torch.arange(b, device=self.path_v.device).repeat_interleave(k),
+        }
 
 
 @torch.no_grad()
@@ -89,13 +106,15 @@ def sample_chunk(
     generator: torch.Generator | None = None,
     stochastic_steps: str = "all",
     device: torch.device | str = "cpu",
+    keep_path: bool = False,
 ) -> ChunkSample:
     """Denoise pure noise into an action chunk ``[B, H, A]`` in ``num_steps`` steps.
 
     ``noise_level = 0`` is the deterministic ODE sampler (evaluation); ``> 0`` is Flow-SDE
     (exploration). One step index ``j ~ Uniform{0..K-1}`` per sample is recorded.
     ``stochastic_steps``: ``"all"`` makes every step stochastic (π-StepNFT), ``"one"`` only
-    the recorded step, the rest ODE (πRL's PPO/GRPO likelihood).
+    the recorded step, the rest ODE (πRL's PPO/GRPO likelihood). ``keep_path`` also
+    returns every intermediate chunk and velocity (``path_x``, ``path_v``).
     """
     if stochastic_steps not in ("all", "one"):
         raise ValueError(f"stochastic_steps must be 'all' or 'one', got {stochastic_steps!r}")
@@ -105,6 +124,7 @@ def sample_chunk(
     dt = torch.full((batch,), 1.0 / num_steps, device=device)
     rec = {k: torch.zeros(shape, device=device) for k in ("x_t", "x_next", "v_old")}
     t_rec = torch.zeros(batch, device=device)
+    xs, vs = [x], []
     for k in range(num_steps):
         t = torch.full((batch,), 1.0 - k / num_steps, device=device)
         v = velocity_fn(x, t)
@@ -119,4 +139,9 @@ def sample_chunk(
         rec["v_old"] = torch.where(here, v, rec["v_old"])
         t_rec = torch.where(step == k, t, t_rec)
         x = x_next
+        if keep_path:
+            xs.append(x)
+            vs.append(v)
+    if keep_path:
+        rec["path_x"], rec["path_v"] = torch.stack(xs, dim=1), torch.stack(vs, dim=1)
     return ChunkSample(actions=x, step=step, t=t_rec, dt=dt, **rec)

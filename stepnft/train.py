@@ -203,7 +203,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         t0 = time.perf_counter()
         ema.eval()
         waves = [run_wave(ema, venv, lang_table, cfg.algo.noise_level, gen, record=True,
-                          stochastic_steps=cfg.algo.sde_steps) for _ in range(waves_per_iter)]
+                          stochastic_steps=cfg.algo.sde_steps, record_steps=cfg.algo.record_steps) for _ in range(waves_per_iter)]
         batch = concat_transitions(waves)
         if lang_table is not None:
             batch["lang"] = lang_table[batch["task_id"]]

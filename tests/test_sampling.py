@@ -117,3 +117,21 @@ def test_flow_matching_pair():
     x_t, v = flow_matching_pair(x0, t, eps)
     torch.testing.assert_close(x_t.flatten(), torch.tensor([0.75, 0.0]))
     torch.testing.assert_close(v.flatten(), torch.tensor([-1.0, -1.0]))
+
+
+def test_keep_path_gives_every_step_consistently():
+    v = lambda x, t: 0.3 * x + t.view(-1, 1, 1)  # noqa: E731
+    out = sample_chunk(v, (5, 2, 3), num_steps=4, noise_level=0.4, generator=torch.Generator().manual_seed(2), keep_path=True)
+    steps = out.all_steps()
+    assert steps["x_t"].shape == (20, 2, 3) and steps["sample"].tolist() == [i for i in range(5) for _ in range(4)]
+    torch.testing.assert_close(out.path_x[:, -1], out.actions)
+    for i in range(5):
+        j = out.step[i].item()
+        row = 4 * i + j
+        torch.testing.assert_close(steps["x_t"][row], out.x_t[i])
+        torch.testing.assert_close(steps["x_next"][row], out.x_next[i])
+        torch.testing.assert_close(steps["v_old"][row], out.v_old[i])
+        assert steps["t"][row].item() == pytest.approx(out.t[i].item())
+    torch.testing.assert_close(steps["v_old"], v(steps["x_t"], steps["t"]))
+    with pytest.raises(ValueError, match="keep_path"):
+        sample_chunk(v, (2, 2, 3)).all_steps()

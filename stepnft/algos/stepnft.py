@@ -20,6 +20,9 @@ class StepNFTConfig:
 
     noise_level: float = 0.2
     """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
+    record_steps: str = "one"
+    """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond
+    SPEC, ``all`` K of them: K times the training signal for the same simulator steps."""
     sde_steps: str = "all"
     """Which denoising steps of a rollout are stochastic: ``all`` (paper) or, beyond SPEC,
     ``one``: only the recorded step, the others ODE (as πRL does), so the recorded step's
@@ -75,6 +78,7 @@ class StepNFTConfig:
             "form": self.form in ("rank", "wmse"),
             "label_balance": self.label_balance in ("none", "global", "task"),
             "sde_steps": self.sde_steps in ("all", "one"),
+            "record_steps": self.record_steps in ("one", "all"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:

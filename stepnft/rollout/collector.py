@@ -40,6 +40,7 @@ def run_wave(
     seeds: list[int] | None = None,
     record: bool = False,
     stochastic_steps: str = "all",
+    record_steps: str = "one",
 ) -> Wave:
     """Every sub-env of ``venv`` plays one episode with ``policy``.
 
@@ -48,7 +49,11 @@ def run_wave(
     instruction embeddings per task. With ``record``, ``transitions`` holds per policy call:
     ``state`` [M, S], ``task_id`` [M], ``x_t``, ``x_next``, ``v_old``, ``actions`` [M, H, A],
     ``t``, ``dt`` [M], ``mask`` [M, H] (executed positions), ``y`` [M], ``env_index`` [M].
+    ``record_steps``: ``one`` stores the call's one random step (SPEC §3); ``all`` stores
+    every one of its K denoising steps (K transitions per call, same simulator cost).
     """
+    if record_steps not in ("one", "all"):
+        raise ValueError(f"record_steps must be 'one' or 'all', got {record_steps!r}")
     n = venv.num_envs
     n_exec = policy.config.n_exec
     obs, _ = venv.reset(seed=seeds)
@@ -62,7 +67,9 @@ def run_wave(
         active = np.flatnonzero(~done)
         state = torch.as_tensor(obs[active], dtype=torch.float32)
         lang = lang_table[task_ids[active]] if lang_table is not None else None
-        sample = policy.sample(state, lang, noise_level=noise_level, generator=generator, stochastic_steps=stochastic_steps)
+        path = {"keep_path": True} if record and record_steps == "all" else {}
+        sample = policy.sample(state, lang, noise_level=noise_level, generator=generator,
+                               stochastic_steps=stochastic_steps, **path)
         chunk = np.zeros((n, n_exec, policy.config.action_dim), dtype=np.float32)
         chunk[active] = sample.actions[:, :n_exec].clamp(-1.0, 1.0).numpy()
         obs, _, terminated, truncated, info = venv.step(chunk)
@@ -72,12 +79,18 @@ def run_wave(
         success |= np.asarray(info["success"], dtype=bool) & ~done
         if record:
             positions = torch.arange(policy.config.horizon)
-            parts.append({
-                "state": state, "task_id": task_ids[active], "x_t": sample.x_t, "x_next": sample.x_next,
-                "v_old": sample.v_old, "actions": sample.actions, "t": sample.t, "dt": sample.dt,
+            part = {
+                "state": state, "task_id": task_ids[active], "actions": sample.actions,
                 "mask": positions[None, :] < torch.as_tensor(steps)[:, None],
                 "env_index": torch.as_tensor(active),
-            })
+            }
+            if record_steps == "all":
+                steps_k = sample.all_steps()
+                rows = steps_k.pop("sample")
+                part = {k: v[rows] for k, v in part.items()} | steps_k
+            else:
+                part |= {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t, "dt": sample.dt}
+            parts.append(part)
         done |= np.asarray(terminated) | np.asarray(truncated)
     wave = Wave(success=success, length=length, calls=calls)
     if record:

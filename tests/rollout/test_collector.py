@@ -88,3 +88,24 @@ def test_recorded_denoising_step(wave_and_steps):
 
     batch = concat_transitions([wave, wave])
     assert batch["y"].shape == (2 * m,) and torch.equal(batch["mask"][m:], tr["mask"])
+
+
+def test_record_all_steps_stores_k_transitions_per_call():
+    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=12, autoreset=False)
+    torch.manual_seed(0)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, horizon=4, n_exec=4))
+    gen = torch.Generator().manual_seed(0)
+    one = run_wave(policy, venv, None, 0.3, gen, seeds=[0, 1], record=True)
+    every = run_wave(policy, venv, None, 0.3, gen, seeds=[0, 1], record=True, record_steps="all")
+    k = policy.config.num_inference_steps
+    assert len(every.transitions["y"]) == k * len(one.transitions["y"]) == k * 6
+    # Each call's K transitions share its observation, mask and label and chain x_next -> x_t.
+    tr = every.transitions
+    for call in range(6):
+        rows = slice(k * call, k * (call + 1))
+        assert (tr["state"][rows] == tr["state"][k * call]).all()
+        assert (tr["mask"][rows] == tr["mask"][k * call]).all()
+        torch.testing.assert_close(tr["x_next"][rows][:-1], tr["x_t"][rows][1:])
+        torch.testing.assert_close(tr["x_next"][rows][-1], tr["actions"][k * call])
+        assert tr["t"][rows].tolist() == [1.0, 0.75, 0.5, 0.25]
+    venv.close()

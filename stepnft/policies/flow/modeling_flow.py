@@ -83,6 +83,7 @@ class FlowPolicy(nn.Module):
         noise_level: float = 0.0,
         generator: torch.Generator | None = None,
         stochastic_steps: str = "all",
+        keep_path: bool = False,
     ) -> ChunkSample:
         """Sample chunks ``[B, H, A]``: ODE when ``noise_level = 0`` (evaluation), else Flow-SDE."""
         feats = self.encode_obs(state, lang)
@@ -95,6 +96,7 @@ class FlowPolicy(nn.Module):
             generator=generator,
             stochastic_steps=stochastic_steps,
             device=state.device,
+            keep_path=keep_path,
         )
 
     # --- save / load (LeRobot-style) ----------------------------------------------------
