@@ -3,7 +3,8 @@
 One multi-task policy per seed: scripted-expert demonstrations (seeded by the run seed) ->
 few-shot SFT -> π-StepNFT under a fixed env-step budget -> ODE evaluation on the fixed
 initial states. Prints and writes a table (task x {SFT, π-StepNFT} success with 95 % CIs,
-env steps, wall-clock) to ``--out``/learning.md and .json.
+env steps, wall-clock) to ``--out``/learning.md and .json. A seed whose run folder already
+holds ``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end.
 
     .venv/bin/python benchmarks/learning.py --seeds 0 1 2
 """
@@ -60,9 +61,16 @@ def main(argv=None) -> dict:
             eval=dataclasses.replace(base.eval, episodes=args.eval_episodes),
             env_step_budget=args.env_steps if args.env_steps is not None else base.env_step_budget,
         )
+        done = Path(cfg.run_dir) / "summary.json"
+        if done.is_file():  # finished earlier (or in a parallel invocation): reuse it
+            summary = json.loads(done.read_text())
+            runs.append({"seed": seed, "wall_clock_s": summary.get("wall_clock_s", float("nan")), **summary})
+            continue
         start = time.perf_counter()
         summary = train(cfg)
-        runs.append({"seed": seed, "wall_clock_s": time.perf_counter() - start, **summary})
+        summary["wall_clock_s"] = time.perf_counter() - start
+        done.write_text(json.dumps(summary, indent=2))
+        runs.append({"seed": seed, **summary})
 
     lines = ["| task | SFT | π-StepNFT | per seed (SFT → π-StepNFT, 95 % CI) |", "|---|---|---|---|"]
     for task in args.tasks:

@@ -80,13 +80,16 @@ def evaluate_policy(
 
 def format_table(before: dict | None, after: dict) -> str:
     """A plain-text table: task, success before -> after with 95 % CIs."""
+    cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f},{r['ci95'][1]:.2f}]"  # noqa: E731
+    if before is None:
+        lines = [f"{'task':<18} {'success [95% CI]':>22}"]
+        lines += [f"{task:<18} {cell(res):>22}" for task, res in after["tasks"].items()]
+        lines.append(f"{'average':<18} {after['average']:>22.3f}")
+        return "\n".join(lines)
     lines = [f"{'task':<18} {'before':>22} {'after':>22}"]
     for task, res in after["tasks"].items():
-        b = before["tasks"][task] if before else None
-        cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f},{r['ci95'][1]:.2f}]" if r else "-"  # noqa: E731
-        lines.append(f"{task:<18} {cell(b):>22} {cell(res):>22}")
-    avg_b = f"{before['average']:.3f}" if before else "-"
-    lines.append(f"{'average':<18} {avg_b:>22} {after['average']:>22.3f}")
+        lines.append(f"{task:<18} {cell(before['tasks'][task]):>22} {cell(res):>22}")
+    lines.append(f"{'average':<18} {before['average']:>22.3f} {after['average']:>22.3f}")
     return "\n".join(lines)
 
 

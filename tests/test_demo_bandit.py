@@ -31,3 +31,20 @@ def test_ablation_switches_run_and_report(switch):
     for key in ("E_pos", "E_neg", "delta_v_norm", "drift_clip_frac", "kl", "loss"):
         assert key in hist[-1]
     assert 0.0 <= hist[-1]["success"] <= 1.0
+
+
+def test_drift_guard_bounds_drift_under_aggressive_learning_rate():
+    """Pitfall: with a large learning rate, many epochs and a slow EMA, ||v - v_old|| runs far
+    past max_drift. The look-before-step guard keeps it near its limit."""
+    import dataclasses
+
+    base = BanditDemoConfig(iterations=10)
+    base = dataclasses.replace(base, sft=dataclasses.replace(base.sft, steps=500))
+    aggressive = dict(lr=2e-3, update_epochs=8, ema_base=0.99, ema_target=0.999)
+    free = run_bandit_demo(with_overrides(base, **aggressive), log=lambda s: None)
+    guarded = run_bandit_demo(with_overrides(base, drift_limit=0.25, **aggressive), log=lambda s: None)
+    free_max = max(r["delta_v_norm"] for r in free[1:])
+    guarded_max = max(r["delta_v_norm"] for r in guarded[1:])
+    assert free_max > 1.0, free_max
+    assert guarded_max < 0.5 * free_max, (guarded_max, free_max)
+    assert any(r["drift_stopped"] for r in guarded[1:])
