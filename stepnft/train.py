@@ -182,6 +182,10 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
                              f"`stepnft train --resume {run_dir}`, or choose another --run-dir")
         save_config(cfg, run_dir / "config.yaml")
         policy = FlowPolicy.from_pretrained(cfg.init) if cfg.init else sft_policy(cfg, tasks, lang_table, log)
+        if policy.config != cfg.policy:
+            # The envs, language table and config.yaml were built for cfg.policy.
+            raise ValueError(f"--init policy {cfg.init} was built with other policy settings than this run's: "
+                             f"pass the same --policy.* flags it was trained with (see its config.json)")
         policy.save_pretrained(run_dir / "sft_policy")
         ema = make_ema_copy(policy)
         optimizer = make_opt(policy)

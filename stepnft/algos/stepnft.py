@@ -62,6 +62,10 @@ class StepNFTConfig:
     carry equal total weight (successful episodes are short, so positives are a minority of
     stored samples); ``task``: the same within each task (a zero-mean signal per task).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
+    drop_uniform_tasks: bool = False
+    """Beyond SPEC: give weight 0 to the samples of a task whose episodes in this iteration
+    all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's
+    zero-advantage groups). Needs ``task_id`` in the batch."""
     drift_limit: float | None = None
     """Beyond SPEC: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
@@ -106,6 +110,17 @@ def label_weights(y: Tensor, group: Tensor | None = None) -> Tensor:
     return w
 
 
+def informative_mask(y: Tensor, group: Tensor) -> Tensor:
+    """``[B]`` bool: True for samples whose group holds both successes and failures."""
+    keep = torch.zeros_like(y, dtype=torch.bool)
+    for g in group.unique():
+        in_g = group == g
+        labels = y[in_g] > 0
+        if labels.any() and not labels.all():
+            keep |= in_g
+    return keep
+
+
 def stepnft_update(
     policy: nn.Module,
     optimizer: torch.optim.Optimizer,
@@ -124,6 +139,9 @@ def stepnft_update(
     weights = None
     if cfg.label_balance != "none":
         weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None)
+    if cfg.drop_uniform_tasks:
+        weights = torch.ones(n) if weights is None else weights
+        weights = weights * informative_mask(batch["y"], batch["task_id"]).float()
     sums: dict[str, float] = defaultdict(float)
     seen = steps = 0
     stopped = False

@@ -53,3 +53,11 @@ def test_drift_limit_stops_epochs_early():
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
     metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
     assert metrics["drift_stopped"] == 1.0 and metrics["update_steps"] < 80
+
+
+def test_informative_mask_drops_single_label_tasks():
+    from stepnft.algos.stepnft import informative_mask
+
+    y = torch.tensor([1.0, -1, 1, 1, -1, -1])
+    task = torch.tensor([0, 0, 1, 1, 2, 2])
+    assert informative_mask(y, task).tolist() == [True, True, False, False, False, False]
