@@ -12,10 +12,11 @@ import contextlib
 import dataclasses
 import json
 import sys
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from stepnft.envs import DEFAULT_TASKS
 
 COMMANDS = {
     "demos": "generate scripted-expert demonstrations for MetaWorld tasks",
@@ -35,7 +36,7 @@ class DemosArgs:
 
     out: str = "demos/default"
     """Output folder (manifest.json + one .npz per episode)."""
-    tasks: list[str] = field(default_factory=lambda: ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"])
+    tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """MetaWorld v3 task names (space- or comma-separated)."""
     episodes: int = 5
     """Episodes per task."""
@@ -53,7 +54,7 @@ class EvalArgs:
 
     policy: str = "runs/stepnft/policy"
     """Policy folder (config.json + model.safetensors), e.g. RUN/policy or RUN/sft_policy."""
-    tasks: list[str] = field(default_factory=lambda: ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"])
+    tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """MetaWorld v3 task names."""
     episodes: int = 100
     """Episodes per task (>= 100 for reported figures)."""
@@ -156,47 +157,9 @@ def _describe(cls) -> str:
     return doc
 
 
-def _load_config(path: str):
-    """``load_config`` with every value type-checked first, so a bad one is a ValueError."""
-    from stepnft.config import TrainConfig, load_config
-
-    with _validation_deferred(TrainConfig):
-        cfg = load_config(path)
-    _check_types(cfg, f"{path}: ")
-    _validate(cfg)
-    return cfg
-
-
-def _check_types(obj, where: str = "") -> None:
-    """ValueError naming the first field of dataclass ``obj`` whose value is not of its type."""
-    hints = typing.get_type_hints(type(obj))
-    for f in dataclasses.fields(obj):
-        value, hint = getattr(obj, f.name), hints[f.name]
-        if dataclasses.is_dataclass(hint):
-            _check_types(value, f"{where}{f.name}.")
-        elif not _matches(value, hint):
-            expected = hint.__name__ if isinstance(hint, type) else str(hint)
-            raise ValueError(f"{where}{f.name}={value!r} has the wrong type, expected {expected}")
-
-
-def _matches(value, hint) -> bool:
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, types.UnionType):
-        return any(_matches(value, a) for a in args)
-    if origin is list:  # a comma-separated string is accepted for a list of names
-        return isinstance(value, str) or (isinstance(value, list) and all(_matches(v, args[0]) for v in value))
-    if origin is dict:
-        return isinstance(value, dict) and all(_matches(k, args[0]) and _matches(v, args[1]) for k, v in value.items())
-    if hint is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, hint)
-
-
 def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
     """Split off --config / --resume, then let tyro parse the rest over the YAML defaults."""
-    from stepnft.config import TrainConfig
+    from stepnft.config import TrainConfig, load_config
 
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     pre.add_argument("--config")
@@ -211,10 +174,10 @@ def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
         cfg_path = Path(resume) / "config.yaml"
         if not cfg_path.is_file():
             raise UsageError(f"cannot resume {resume}: no config.yaml there (is it a stepnft run directory?)")
-        cfg = _load_config(str(cfg_path))
+        cfg = load_config(cfg_path)
         cfg.run_dir = resume  # the folder may have been moved or copied since it was written
         return cfg, True
-    base = _load_config(known.config) if known.config else TrainConfig()
+    base = load_config(known.config) if known.config else TrainConfig()
     return _tyro(TrainConfig, rest, base, prog), False
 
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import yaml
 
 from stepnft.algos.sft import SFTConfig
+from stepnft.envs import DEFAULT_TASKS
 from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.policies.flow import FlowPolicyConfig
 
-DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
 
 
 @dataclass
@@ -129,8 +129,28 @@ def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def _matches(value, hint) -> bool:
+    """Whether a YAML value fits a field's type hint (ints pass for floats; a comma-separated
+    string passes for a list of names)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in args)
+    if origin is list:
+        return isinstance(value, str) or (isinstance(value, list) and all(_matches(v, args[0]) for v in value))
+    if origin is dict:
+        return isinstance(value, dict) and all(_matches(k, args[0]) and _matches(v, args[1]) for k, v in value.items())
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
 def from_dict(cls, data: dict, where: str = ""):
-    """Build dataclass ``cls`` from a nested dict; unknown keys are an error naming the key."""
+    """Build dataclass ``cls`` from a nested dict. An unknown key or a value of the wrong type
+    is a ValueError naming it, raised before any section's own checks run."""
     if not isinstance(data, dict):
         raise ValueError(f"config section {where or 'root'} must be a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
@@ -142,9 +162,10 @@ def from_dict(cls, data: dict, where: str = ""):
         hint = hints[key]
         if dataclasses.is_dataclass(hint):
             value = from_dict(hint, value or {}, f"{where}{key}.")
-        elif isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-            pass
-        elif hint is float and isinstance(value, int):
+        elif not _matches(value, hint):
+            expected = hint.__name__ if isinstance(hint, type) else str(hint)
+            raise ValueError(f"{where}{key}={value!r} has the wrong type, expected {expected}")
+        elif hint is float:
             value = float(value)
         kwargs[key] = value
     return cls(**kwargs)
@@ -163,4 +184,7 @@ def load_config(path: str | Path, cls=TrainConfig):
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise ValueError(f"config file {path} is not valid YAML: {str(err).splitlines()[0]}") from err
-    return from_dict(cls, data)
+    try:
+        return from_dict(cls, data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from err

@@ -62,6 +62,11 @@ class StepNFTConfig:
     carry equal total weight (successful episodes are short, so positives are a minority of
     stored samples); ``task``: the same within each task (a zero-mean signal per task).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
+    episode_weighting: bool = False
+    """Beyond SPEC: every episode carries the same total weight, however many policy calls it
+    made (failures run to the step cap and would otherwise dominate the batch: a failing
+    pick-place episode stores ~4x the samples of a successful door-open one). Needs
+    ``episode`` in the batch."""
     drop_uniform_tasks: bool = False
     """Beyond SPEC: give weight 0 to the samples of a task whose episodes in this iteration
     all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's
@@ -93,21 +98,28 @@ class StepNFTConfig:
             raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
 
 
-def label_weights(y: Tensor, group: Tensor | None = None) -> Tensor:
+def label_weights(y: Tensor, group: Tensor | None = None, base: Tensor | None = None) -> Tensor:
     """Per-sample weights ``[B]`` giving successes and failures equal total weight within each
-    group (``group`` [B] ints, e.g. task ids; None: one group). A group with one label only
-    keeps weight 1. The weights average to 1 over the batch."""
+    group (``group`` [B] ints, e.g. task ids; None: one group), rescaling ``base`` weights
+    (None: all 1). A group with one label only keeps its base weights."""
     group = torch.zeros_like(y, dtype=torch.long) if group is None else group
     pos = y > 0
-    w = torch.ones_like(y, dtype=torch.float32)
+    w = torch.ones_like(y, dtype=torch.float32) if base is None else base.float().clone()
     for g in group.unique():
         in_g = group == g
-        n_pos, n_neg = (pos & in_g).sum(), (~pos & in_g).sum()
-        if n_pos > 0 and n_neg > 0:
-            n = in_g.sum()
-            w[pos & in_g] = 0.5 * n / n_pos
-            w[~pos & in_g] = 0.5 * n / n_neg
+        total_pos, total_neg = w[pos & in_g].sum(), w[~pos & in_g].sum()
+        if total_pos > 0 and total_neg > 0:
+            total = total_pos + total_neg
+            w[pos & in_g] *= 0.5 * total / total_pos
+            w[~pos & in_g] *= 0.5 * total / total_neg
     return w
+
+
+def episode_weights(episode: Tensor) -> Tensor:
+    """``[B]`` weights giving every episode the same total weight (mean 1 over the batch)."""
+    _, inverse, counts = episode.unique(return_inverse=True, return_counts=True)
+    w = 1.0 / counts[inverse].float()
+    return w * len(w) / w.sum()
 
 
 def informative_mask(y: Tensor, group: Tensor) -> Tensor:
@@ -136,9 +148,9 @@ def stepnft_update(
     Returns metrics averaged over minibatch steps.
     """
     n = batch["y"].shape[0]
-    weights = None
+    weights = episode_weights(batch["episode"]) if cfg.episode_weighting else None
     if cfg.label_balance != "none":
-        weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None)
+        weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None, weights)
     if cfg.drop_uniform_tasks:
         weights = torch.ones(n) if weights is None else weights
         weights = weights * informative_mask(batch["y"], batch["task_id"]).float()

@@ -101,5 +101,8 @@ def run_wave(
 
 
 def concat_transitions(waves: list[Wave]) -> dict[str, Tensor]:
-    """Stack the recorded transitions of several waves into one batch."""
-    return {k: torch.cat([w.transitions[k] for w in waves]) for k in waves[0].transitions}
+    """Stack the recorded transitions of several waves into one batch; ``episode`` [M] numbers
+    the episodes of all waves (wave ``i``, sub-env ``e`` -> ``i * N + e``)."""
+    batch = {k: torch.cat([w.transitions[k] for w in waves]) for k in waves[0].transitions}
+    batch["episode"] = torch.cat([i * len(w.success) + w.transitions["env_index"] for i, w in enumerate(waves)])
+    return batch

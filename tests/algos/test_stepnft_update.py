@@ -61,3 +61,14 @@ def test_informative_mask_drops_single_label_tasks():
     y = torch.tensor([1.0, -1, 1, 1, -1, -1])
     task = torch.tensor([0, 0, 1, 1, 2, 2])
     assert informative_mask(y, task).tolist() == [True, True, False, False, False, False]
+
+
+def test_episode_weights_equalise_episodes_and_combine_with_balance():
+    from stepnft.algos.stepnft import episode_weights
+
+    episode = torch.tensor([0, 0, 0, 1])  # a 3-call episode and a 1-call episode
+    w = episode_weights(episode)
+    assert w[:3].sum().item() == pytest.approx(w[3].item()) and w.mean().item() == pytest.approx(1.0)
+    y = torch.tensor([-1.0, -1, -1, 1])
+    balanced = label_weights(y, base=w)
+    assert balanced[y > 0].sum().item() == pytest.approx(balanced[y < 0].sum().item())
