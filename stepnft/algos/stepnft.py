@@ -62,11 +62,12 @@ class StepNFTConfig:
     carry equal total weight (successful episodes are short, so positives are a minority of
     stored samples); ``task``: the same within each task (a zero-mean signal per task).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
-    episode_weighting: bool = False
+    episode_weighting: bool = True
     """Beyond SPEC: every episode carries the same total weight, however many policy calls it
     made (failures run to the step cap and would otherwise dominate the batch: a failing
-    pick-place episode stores ~4x the samples of a successful door-open one). Needs
-    ``episode`` in the batch."""
+    pick-place episode stores ~4x the samples of a successful door-open one). Uses the
+    batch's ``episode`` ids; a batch without them has one sample per episode. Default on:
+    measured 0.75 vs 0.65 average success over 3 seeds (docs/experiments.md)."""
     drop_uniform_tasks: bool = False
     """Beyond SPEC: give weight 0 to the samples of a task whose episodes in this iteration
     all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's
@@ -144,11 +145,12 @@ def stepnft_update(
 
     ``batch`` keys (``N`` stored transitions): ``state`` [N, S], ``lang`` [N, L] (optional),
     ``x_t``, ``x_next``, ``v_old``, ``actions`` [N, H, A], ``t``, ``dt`` [N], ``y`` [N] in
-    {+1, -1}, ``mask`` [N, H], ``task_id`` [N] (optional, for ``label_balance="task"``).
+    {+1, -1}, ``mask`` [N, H], ``task_id`` [N] (optional, for ``label_balance="task"``),
+    ``episode`` [N] (optional, for ``episode_weighting``).
     Returns metrics averaged over minibatch steps.
     """
     n = batch["y"].shape[0]
-    weights = episode_weights(batch["episode"]) if cfg.episode_weighting else None
+    weights = episode_weights(batch["episode"]) if cfg.episode_weighting and "episode" in batch else None
     if cfg.label_balance != "none":
         weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None, weights)
     if cfg.drop_uniform_tasks:
