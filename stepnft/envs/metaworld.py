@@ -184,40 +184,50 @@ class MetaWorldChunkEnv(gym.Env):
         self._sim.close()
 
 
-def _task_layout(
-    vec,
-    tasks: str | Sequence[str],
-    envs_per_task: int,
-    n_exec: int,
-    max_episode_steps: int,
-    terminate_on_success: bool,
-    seed: int,
-) -> list:
-    """Sets `vec.tasks/.instructions/.task_ids/.task_names`; returns one env factory per sub-env."""
-    vec.tasks = validate_tasks(tasks)
-    if len(set(vec.tasks)) != len(vec.tasks):
-        raise ValueError(f"each task may appear once, got {', '.join(vec.tasks)}")
-    if envs_per_task < 1:
-        raise ValueError(f"envs_per_task must be >= 1, got {envs_per_task}")
-    vec.instructions = [instruction_for(task) for task in vec.tasks]
-    vec.task_ids = np.repeat(np.arange(len(vec.tasks), dtype=np.int64), envs_per_task)
-    vec.task_names = [vec.tasks[i] for i in vec.task_ids]
-    # Distinct, well-mixed sub-env seeds, so runs with nearby `seed`s share no streams.
-    env_seeds = np.random.SeedSequence(seed).generate_state(len(vec.task_names))
-    return [
-        partial(
-            MetaWorldChunkEnv,
-            task,
-            n_exec=n_exec,
-            max_episode_steps=max_episode_steps,
-            terminate_on_success=terminate_on_success,
-            seed=int(env_seed),
-        )
-        for task, env_seed in zip(vec.task_names, env_seeds)
-    ]
+class _MultiTaskLayout:
+    """The task layout both vector envs share: sub-env i runs `tasks[i // envs_per_task]`.
+
+    Sets `.tasks`, `.instructions` (per task), `.task_ids` [N], `.task_names` [N], then hands
+    one env factory per sub-env to the gymnasium vector class it is mixed into.
+    """
+
+    def __init__(
+        self,
+        tasks: str | Sequence[str],
+        envs_per_task: int = 1,
+        n_exec: int = 4,
+        max_episode_steps: int = 200,
+        terminate_on_success: bool = True,
+        seed: int = 0,
+        autoreset: bool = True,
+        **vector_kwargs: Any,
+    ):
+        self.tasks = validate_tasks(tasks)
+        if len(set(self.tasks)) != len(self.tasks):
+            raise ValueError(f"each task may appear once, got {', '.join(self.tasks)}")
+        if envs_per_task < 1:
+            raise ValueError(f"envs_per_task must be >= 1, got {envs_per_task}")
+        self.instructions = [instruction_for(task) for task in self.tasks]
+        self.task_ids = np.repeat(np.arange(len(self.tasks), dtype=np.int64), envs_per_task)
+        self.task_names = [self.tasks[i] for i in self.task_ids]
+        # Distinct, well-mixed sub-env seeds, so runs with nearby `seed`s share no streams.
+        env_seeds = np.random.SeedSequence(seed).generate_state(len(self.task_names))
+        env_fns = [
+            partial(
+                MetaWorldChunkEnv,
+                task,
+                n_exec=n_exec,
+                max_episode_steps=max_episode_steps,
+                terminate_on_success=terminate_on_success,
+                seed=int(env_seed),
+            )
+            for task, env_seed in zip(self.task_names, env_seeds)
+        ]
+        mode = AutoresetMode.SAME_STEP if autoreset else AutoresetMode.DISABLED
+        super().__init__(env_fns, autoreset_mode=mode, **vector_kwargs)
 
 
-class MetaWorldVecEnv(gym.vector.SyncVectorEnv):
+class MetaWorldVecEnv(_MultiTaskLayout, gym.vector.SyncVectorEnv):
     """Several MetaWorld tasks in one batch; sub-env i runs `tasks[i // envs_per_task]`.
 
     Build it with `make_metaworld_vec_env`. Observations [N, 39]; actions [N, n_exec, 4].
@@ -235,20 +245,6 @@ class MetaWorldVecEnv(gym.vector.SyncVectorEnv):
     episode's result.
     """
 
-    def __init__(
-        self,
-        tasks: str | Sequence[str],
-        envs_per_task: int = 1,
-        n_exec: int = 4,
-        max_episode_steps: int = 200,
-        terminate_on_success: bool = True,
-        seed: int = 0,
-        autoreset: bool = True,
-    ):
-        env_fns = _task_layout(self, tasks, envs_per_task, n_exec, max_episode_steps, terminate_on_success, seed)
-        mode = AutoresetMode.SAME_STEP if autoreset else AutoresetMode.DISABLED
-        super().__init__(env_fns, autoreset_mode=mode)
-
     def step(self, actions: np.ndarray):
         if self.autoreset_mode == AutoresetMode.DISABLED:
             # SyncVectorEnv refuses to step a finished sub-env when autoreset is disabled;
@@ -257,25 +253,13 @@ class MetaWorldVecEnv(gym.vector.SyncVectorEnv):
         return super().step(actions)
 
 
-class MetaWorldAsyncVecEnv(gym.vector.AsyncVectorEnv):
+class MetaWorldAsyncVecEnv(_MultiTaskLayout, gym.vector.AsyncVectorEnv):
     """`MetaWorldVecEnv` with each sub-env in its own process, at most `num_workers` stepping
-    at once (MuJoCo is CPU-bound: one worker per core). Same layout, attributes and info keys;
-    finished sub-envs answer steps with no-ops under autoreset disabled as well."""
+    at once (MuJoCo is CPU-bound: one worker per core). Same arguments, layout, attributes and
+    info keys; finished sub-envs answer steps with no-ops under autoreset disabled as well."""
 
-    def __init__(
-        self,
-        tasks: str | Sequence[str],
-        envs_per_task: int = 1,
-        n_exec: int = 4,
-        max_episode_steps: int = 200,
-        terminate_on_success: bool = True,
-        seed: int = 0,
-        autoreset: bool = True,
-        num_workers: int = 2,
-    ):
-        env_fns = _task_layout(self, tasks, envs_per_task, n_exec, max_episode_steps, terminate_on_success, seed)
-        mode = AutoresetMode.SAME_STEP if autoreset else AutoresetMode.DISABLED
-        super().__init__(env_fns, autoreset_mode=mode, max_concurrency=num_workers, context="fork")
+    def __init__(self, *args: Any, num_workers: int = 2, **kwargs: Any):
+        super().__init__(*args, max_concurrency=num_workers, context="fork", **kwargs)
 
 
 def get_rng_states(venv) -> list[dict]:
@@ -308,15 +292,8 @@ def make_metaworld_vec_env(
     `num_workers` 0 steps every sub-env in this process; >= 1 uses one process per sub-env
     with at most `num_workers` running at once (`MetaWorldAsyncVecEnv`).
     """
+    layout = dict(envs_per_task=envs_per_task, n_exec=n_exec, max_episode_steps=max_episode_steps,
+                  terminate_on_success=terminate_on_success, seed=seed, autoreset=autoreset)
     if num_workers > 0:
-        return MetaWorldAsyncVecEnv(tasks, envs_per_task, n_exec, max_episode_steps, terminate_on_success,
-                                    seed, autoreset, num_workers)
-    return MetaWorldVecEnv(
-        tasks,
-        envs_per_task=envs_per_task,
-        n_exec=n_exec,
-        max_episode_steps=max_episode_steps,
-        terminate_on_success=terminate_on_success,
-        seed=seed,
-        autoreset=autoreset,
-    )
+        return MetaWorldAsyncVecEnv(tasks, num_workers=num_workers, **layout)
+    return MetaWorldVecEnv(tasks, **layout)
