@@ -143,17 +143,25 @@ def plot_learning_curve(run_dir: Path) -> Path:
     return out
 
 
-def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
-    """Run (or resume) a π-StepNFT run; returns the summary also written to ``summary.json``."""
+def _start_run(cfg: TrainConfig, resume: bool = False):
+    """What ``sft`` and ``train`` both start with: checked tasks, a writable run folder, seeds
+    and threads, the instruction table and the vector env (autoreset off: rollout waves and
+    evaluations reset it themselves). Returns ``(tasks, run_dir, lang_table, venv)``."""
     tasks = validate_tasks(cfg.env.tasks)
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
     lang_table = language_table(cfg, tasks, cache_dir=run_dir / "lang_cache")
-    make_opt = lambda p: torch.optim.AdamW(p.parameters(), lr=cfg.algo.lr, betas=(0.9, 0.95), weight_decay=cfg.algo.weight_decay)  # noqa: E731
     venv = make_metaworld_vec_env(tasks, cfg.env.envs_per_task, cfg.policy.n_exec, cfg.env.max_episode_steps,
                                   cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False,
                                   num_workers=cfg.env.num_workers)
+    return tasks, run_dir, lang_table, venv
+
+
+def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
+    """Run (or resume) a π-StepNFT run; returns the summary also written to ``summary.json``."""
+    tasks, run_dir, lang_table, venv = _start_run(cfg, resume)
+    make_opt = lambda p: torch.optim.AdamW(p.parameters(), lr=cfg.algo.lr, betas=(0.9, 0.95), weight_decay=cfg.algo.weight_decay)  # noqa: E731
     gen = torch.Generator().manual_seed(cfg.seed)
     waves_per_iter = math.ceil(cfg.episodes_per_iteration / venv.num_envs)
     horizon = cfg.algo.ema_horizon or cfg.iterations
@@ -270,17 +278,10 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
 
 def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     """``stepnft sft``: few-shot SFT on the demonstrations, saved to ``RUN/policy``, then evaluated."""
-    tasks = validate_tasks(cfg.env.tasks)
-    run_dir = prepare_run_dir(cfg.run_dir)
-    torch.set_num_threads(cfg.num_threads)
-    torch.manual_seed(cfg.seed)
+    tasks, run_dir, lang_table, venv = _start_run(cfg)
     save_config(cfg, run_dir / "config.yaml")
-    lang_table = language_table(cfg, tasks, cache_dir=run_dir / "lang_cache")
     policy = sft_policy(cfg, tasks, lang_table, log)
     policy.save_pretrained(run_dir / "policy")
-    venv = make_metaworld_vec_env(tasks, cfg.env.envs_per_task, cfg.policy.n_exec, cfg.env.max_episode_steps,
-                                  cfg.env.terminate_on_success, seed=cfg.seed, autoreset=False,
-                                  num_workers=cfg.env.num_workers)
     result = evaluate_policy(policy, venv, lang_table, cfg.eval.episodes, cfg.eval.seed)
     venv.close()
     write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
