@@ -1,9 +1,12 @@
-"""Training checkpoints: policy, EMA policy, optimiser, RNG states, counters; atomic writes.
+"""Training checkpoints: the policy plus a nested state (algorithm, collector, counters, RNGs).
 
-Layout: ``RUN/checkpoints/iter_000010/{policy/, ema/, optimizer.safetensors, state.json}`` and
-``RUN/checkpoints/LATEST`` naming the newest one. A checkpoint is written to a temporary
-folder and renamed into place; ``LATEST`` is replaced atomically afterwards, so a kill at any
-moment leaves the previous checkpoint intact and pointed to. Nothing is pickled.
+Layout: ``RUN/checkpoints/iter_000010/{policy/, state.safetensors, state.json}`` and
+``RUN/checkpoints/LATEST`` naming the newest one. ``policy/`` is an ordinary saved policy (load
+it with ``Policy.from_pretrained``). The state is any tree of dicts, lists, tensors and JSON
+values: tensors go to ``state.safetensors``, the rest (with typed dict keys) to ``state.json``.
+A checkpoint is written to a temporary folder and renamed into place; ``LATEST`` is replaced
+atomically afterwards, so a kill at any moment leaves the previous checkpoint intact and
+pointed to. Nothing is pickled.
 """
 
 from __future__ import annotations
@@ -13,55 +16,53 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from stepnft.policies.flow import FlowPolicy
+from stepnft.policies.base import Policy
+from stepnft.runs import write_atomic
 
 KEEP = 2  # checkpoints kept on disk
+FORMAT_VERSION = 2
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` so readers see the old or the new file, never half."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def flatten_state(tree: Any) -> tuple[Any, dict[str, torch.Tensor]]:
+    """Split a state tree into a JSON skeleton and its tensors (keyed ``t0``, ``t1``, ...).
+    Dicts keep the type of their keys (an optimizer's state is keyed by int)."""
+    tensors: dict[str, torch.Tensor] = {}
+
+    def walk(node):
+        if torch.is_tensor(node):
+            key = f"t{len(tensors)}"
+            tensors[key] = node.detach().contiguous().cpu()
+            return {"tensor": key}
+        if isinstance(node, dict):
+            return {"dict": [[k, walk(v)] for k, v in node.items()]}
+        if isinstance(node, (list, tuple)):
+            return {"list": [walk(v) for v in node]}
+        return {"value": node}
+
+    return walk(tree), tensors
 
 
-def _flatten_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
-    sd = optimizer.state_dict()
-    tensors, scalars = {}, {}
-    for idx, state in sd["state"].items():
-        for key, value in state.items():
-            if torch.is_tensor(value):
-                tensors[f"state.{idx}.{key}"] = value.detach().contiguous().cpu()
-            else:
-                scalars[f"{idx}.{key}"] = value
-    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+def unflatten_state(skeleton: Any, tensors: dict[str, torch.Tensor]) -> Any:
+    """Inverse of :func:`flatten_state` (tuples come back as lists)."""
+    if "tensor" in skeleton:
+        return tensors[skeleton["tensor"]]
+    if "dict" in skeleton:
+        return {k: unflatten_state(v, tensors) for k, v in skeleton["dict"]}
+    if "list" in skeleton:
+        return [unflatten_state(v, tensors) for v in skeleton["list"]]
+    return skeleton["value"]
 
 
-def _unflatten_optimizer(tensors: dict[str, torch.Tensor], meta: dict) -> dict:
-    state: dict[int, dict] = {}
-    for name, value in tensors.items():
-        _, idx, key = name.split(".", 2)
-        state.setdefault(int(idx), {})[key] = value
-    for name, value in meta["scalars"].items():
-        idx, key = name.split(".", 1)
-        state.setdefault(int(idx), {})[key] = value
-    return {"state": state, "param_groups": meta["param_groups"]}
-
-
-def save_checkpoint(run_dir: Path, iteration: int, policy: FlowPolicy, ema: FlowPolicy,
-                    optimizer: torch.optim.Optimizer, state: dict, rng: dict[str, torch.Tensor]) -> Path:
-    """Write checkpoint ``iter_{iteration}`` atomically and point ``LATEST`` at it."""
-    root = run_dir / "checkpoints"
+def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) -> Path:
+    """Write checkpoint ``iter_{iteration}`` (the policy and ``state``) atomically and point
+    ``LATEST`` at it."""
+    root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
     for stale in root.glob(".tmp-*"):  # left by a writer that was killed
         shutil.rmtree(stale, ignore_errors=True)
@@ -69,10 +70,9 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: FlowPolicy, ema: Flow
     tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tmp-"))
     try:
         policy.save_pretrained(tmp / "policy")
-        ema.save_pretrained(tmp / "ema")
-        tensors, meta = _flatten_optimizer(optimizer)
-        save_file({**tensors, **{f"rng.{k}": v for k, v in rng.items()}}, str(tmp / "optimizer.safetensors"))
-        (tmp / "state.json").write_text(json.dumps({**state, "iteration": iteration, "optimizer": meta}))
+        skeleton, tensors = flatten_state({**state, "iteration": iteration})
+        save_file(tensors, str(tmp / "state.safetensors"))
+        (tmp / "state.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "state": skeleton}))
         final = root / name
         if final.exists():  # never the one LATEST names: iterations only grow after a resume
             shutil.rmtree(final)
@@ -86,11 +86,9 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: FlowPolicy, ema: Flow
     return final
 
 
-def load_checkpoint(run_dir: Path, optimizer_factory) -> dict:
-    """Load the newest checkpoint of ``run_dir``.
+def load_checkpoint(run_dir: Path) -> dict:
+    """Load the newest checkpoint of ``run_dir``: ``{"policy", "state", "path"}``.
 
-    ``optimizer_factory(policy) -> optimizer`` builds the optimiser before its state is loaded.
-    Returns ``policy``, ``ema``, ``optimizer``, ``state`` (counters, env RNG, ...), ``rng``.
     Raises ValueError with one actionable line if there is none or it is corrupt.
     """
     root = Path(run_dir) / "checkpoints"
@@ -99,17 +97,12 @@ def load_checkpoint(run_dir: Path, optimizer_factory) -> dict:
         raise ValueError(f"no checkpoint to resume in {run_dir}: start a new run with `stepnft train --run-dir ...`")
     ckpt = root / latest.read_text().strip()
     try:
-        policy = FlowPolicy.from_pretrained(ckpt / "policy")
-        ema = FlowPolicy.from_pretrained(ckpt / "ema")
-        state = json.loads((ckpt / "state.json").read_text())
-        tensors = load_file(str(ckpt / "optimizer.safetensors"))
-        optimizer = optimizer_factory(policy)
-        opt_tensors = {k: v for k, v in tensors.items() if k.startswith("state.")}
-        optimizer.load_state_dict(_unflatten_optimizer(opt_tensors, state.pop("optimizer")))
-    except (FileNotFoundError, ValueError, KeyError, OSError, SafetensorError, json.JSONDecodeError) as err:
+        policy = Policy.from_pretrained(ckpt / "policy")
+        meta = json.loads((ckpt / "state.json").read_text())
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise ValueError(f"checkpoint format {meta.get('format_version')}, this stepnft reads {FORMAT_VERSION}")
+        state = unflatten_state(meta["state"], load_file(str(ckpt / "state.safetensors")))
+    except (FileNotFoundError, ValueError, KeyError, TypeError, OSError, SafetensorError, json.JSONDecodeError) as err:
         raise ValueError(f"checkpoint {ckpt} is corrupt or incomplete ({str(err).splitlines()[0]}); "
                          "delete it and point LATEST at an older one, or start a new run") from err
-    for p in ema.parameters():
-        p.requires_grad_(False)
-    rng = {k[len("rng."):]: v for k, v in tensors.items() if k.startswith("rng.")}
-    return {"policy": policy, "ema": ema, "optimizer": optimizer, "state": state, "rng": rng, "path": ckpt}
+    return {"policy": policy, "state": state, "path": ckpt}

@@ -1,8 +1,11 @@
 """``stepnft`` command line: demos, sft, train, eval, demo-bandit.
 
-Config commands read an optional ``--config FILE.yaml`` first; every other flag overrides a
-field of it (``--algo.lr 1e-4``, ``--env.tasks reach-v3 push-v3``). Bad input ends with one
-line on stderr and exit code 2.
+Every command's flags are generated from the config dataclasses (``stepnft.config``): one
+schema, the same checks for flags and YAML. ``sft``, ``train`` and ``demo-bandit`` read an
+optional ``--config FILE.yaml`` first; every other flag overrides a field of it
+(``--algo.lr 1e-4``, ``--env.tasks reach-v3 push-v3``). ``--algo.name`` picks the algorithm,
+and the ``--algo.*`` flags are then that algorithm's. Bad input ends with one line on stderr
+and exit code 2.
 """
 
 from __future__ import annotations
@@ -12,16 +15,12 @@ import contextlib
 import dataclasses
 import json
 import sys
-import typing
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from stepnft.envs import DEFAULT_TASKS
-
 COMMANDS = {
-    "demos": "generate scripted-expert demonstrations for MetaWorld tasks",
+    "demos": "generate scripted-expert demonstrations (until N successful episodes per task)",
     "sft": "few-shot flow-matching behaviour cloning on demonstrations, then evaluation",
-    "train": "online π-StepNFT from an SFT policy (runs SFT first if --init is not given)",
+    "train": "online RL (π-StepNFT by default) from an SFT policy (runs SFT first if --init is not given)",
     "eval": "deterministic (ODE) evaluation of a policy on fixed initial states, with 95 % CIs",
     "demo-bandit": "the core demo: π-StepNFT on a contextual bandit, success per iteration",
 }
@@ -29,106 +28,50 @@ COMMANDS = {
 CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval")
 """The sections of ``TrainConfig`` (kept here so ``stepnft --help`` needs no heavy import)."""
 
-
-@dataclass
-class DemosArgs:
-    """Generate scripted-expert demonstrations (MetaWorld's ENV_POLICY_MAP experts)."""
-
-    out: str = "demos/default"
-    """Output folder (manifest.json + one .npz per episode)."""
-    tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
-    """MetaWorld v3 task names (space- or comma-separated)."""
-    episodes: int = 5
-    """Episodes per task."""
-    seed: int = 0
-    """Seed of the initial states (disjoint from evaluation states)."""
-    action_noise: float = 0.0
-    """Std of Gaussian noise added to the expert's actions."""
-    max_episode_steps: int = 200
-    """Episode cap in env steps."""
-
-
-@dataclass
-class EvalArgs:
-    """Evaluate a saved policy on a fixed, seeded set of initial states (ODE sampling)."""
-
-    policy: str = "runs/stepnft/policy"
-    """Policy folder (config.json + model.safetensors), e.g. RUN/policy or RUN/sft_policy."""
-    tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
-    """MetaWorld v3 task names."""
-    episodes: int = 100
-    """Episodes per task (>= 100 for reported figures)."""
-    seed: int = 0
-    """Episode e starts from initial state seed + e (same set for every checkpoint)."""
-    envs_per_task: int = 4
-    """Parallel simulators per task."""
-    max_episode_steps: int = 200
-    """Episode cap in env steps."""
-    language_encoder: str = "default"
-    """Frozen sentence encoder ('default' or a local folder); must match training."""
-    out: str | None = None
-    """Also write the results as JSON to this file."""
-    video_dir: str | None = None
-    """Also record ODE episodes as ``DIR/<task>_ep<e>_<success|fail>.mp4`` (needs offscreen
-    rendering: MUJOCO_GL=egl)."""
-    video_episodes: int = 1
-    """Episodes recorded per task with --video-dir (episode e starts from eval state seed + e)."""
-
-    def __post_init__(self) -> None:
-        if self.episodes < 0 or self.video_episodes < 1:
-            raise ValueError(f"episodes must be >= 0 (0: no evaluation) and video_episodes >= 1, "
-                             f"got {self.episodes} and {self.video_episodes}")
-
-
-@dataclass
-class BanditArgs:
-    """π-StepNFT on a contextual bandit: SFT on biased demos, then RL; prints success per iteration."""
-
-    seed: int = 0
-    """Seed."""
-    iterations: int = 30
-    """RL iterations."""
-    noise_level: float = 0.3
-    """Flow-SDE noise level a (0: ODE rollouts, the exploration ablation)."""
-    target: str = "next"
-    """'next' (step-wise, paper) or 'x0' (final-action ablation)."""
-    form: str = "rank"
-    """'rank' (paper) or 'wmse' (weighted-MSE ablation)."""
-    beta: float = 1.0
-    """Trust factor of the mirrored candidates."""
+LEGACY_FLAGS = {
+    "demos": {"--out": "--demos.path", "--tasks": "--env.tasks", "--episodes": "--demos.episodes",
+              "--seed": "--demos.seed", "--action-noise": "--demos.action-noise",
+              "--max-episode-steps": "--env.max-episode-steps"},
+    "eval": {"--tasks": "--env.tasks", "--episodes": "--eval.episodes", "--seed": "--eval.seed",
+             "--envs-per-task": "--env.envs-per-task", "--max-episode-steps": "--env.max-episode-steps"},
+    "demo-bandit": {"--noise-level": "--algo.noise-level", "--target": "--algo.target", "--form": "--algo.form",
+                    "--beta": "--algo.beta"},
+}
+"""Flags of earlier releases, still accepted: each is the same as the flag it maps to."""
 
 
 class UsageError(Exception):
     """Bad input: reported as one line, exit code 2."""
 
 
-def _tyro(cls, args, default, prog):
-    """Parse ``args`` over ``default`` into ``cls``; a bad value raises ValueError.
+def _parse(cls, argv: list[str], default, prog: str):
+    """Parse ``argv`` over ``default`` into ``cls``; a bad value raises ValueError.
 
     tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
     box of its own, so sections are built unvalidated and their checks run after parsing.
     """
     import tyro
 
-    with _validation_deferred(cls):
-        parsed = tyro.cli(cls, args=args, default=default, prog=prog, description=_describe(cls))
+    with _validation_deferred(default):
+        parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
     _validate(parsed)
     return parsed
 
 
-def _section_classes(cls) -> set[type]:
-    """``cls`` and the dataclasses of its nested sections."""
-    found = {cls}
-    for hint in typing.get_type_hints(cls).values():
-        if dataclasses.is_dataclass(hint) and hint not in found:
-            found |= _section_classes(hint)
+def _section_classes(obj) -> set[type]:
+    """The classes of ``obj`` and of its nested sections, and their bases."""
+    found = {c for c in type(obj).__mro__ if dataclasses.is_dataclass(c)}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            found |= _section_classes(value)
     return found
 
 
 @contextlib.contextmanager
-def _validation_deferred(cls):
-    """Within the block, ``cls`` and its sections skip their ``__post_init__`` checks."""
-    saved = {c: c.__dict__["__post_init__"] for c in _section_classes(cls) if "__post_init__" in c.__dict__}
+def _validation_deferred(default):
+    """Within the block, the config classes skip their ``__post_init__`` checks."""
+    saved = {c: c.__dict__["__post_init__"] for c in _section_classes(default) if "__post_init__" in c.__dict__}
     for c in saved:
         c.__post_init__ = lambda self: None
     try:
@@ -152,13 +95,38 @@ def _validate(obj) -> None:
 def _describe(cls) -> str:
     doc = (cls.__doc__ or "").strip()
     if cls.__name__ == "TrainConfig":
-        doc += (" Extra flags: --config FILE.yaml (defaults for every flag below; a run's config.yaml"
-                " reproduces it), --resume RUN_DIR (continue the last checkpoint of a run; it takes no other flags).")
+        from stepnft.algos.base import ALGORITHMS
+
+        doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
+                " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
+                " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
+                " the last checkpoint of a run; it takes no other flags).")
     return doc
 
 
-def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
-    """Split off --config / --resume, then let tyro parse the rest over the YAML defaults."""
+def _translate_legacy(argv: list[str], command: str) -> list[str]:
+    table = LEGACY_FLAGS.get(command, {})
+    out = []
+    for arg in argv:
+        flag, eq, value = arg.partition("=")
+        out.append(table[flag] + eq + value if flag in table else arg)
+    return out
+
+
+def _algo_name(argv: list[str]) -> str | None:
+    """The value of ``--algo.name`` in ``argv``, if given."""
+    for i, arg in enumerate(argv):
+        if arg.startswith("--algo.name="):
+            return arg.split("=", 1)[1]
+        if arg == "--algo.name" and i + 1 < len(argv):
+            return argv[i + 1]
+    return None
+
+
+def _train_config_from_argv(argv: list[str], prog: str, allow_resume: bool, base=None):
+    """Split off --config / --resume, then parse the rest over the YAML (or ``base``) defaults.
+    Returns ``(TrainConfig, resume)``."""
+    from stepnft.algos.base import config_class
     from stepnft.config import TrainConfig, load_config
 
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
@@ -177,27 +145,40 @@ def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
         cfg = load_config(cfg_path)
         cfg.run_dir = resume  # the folder may have been moved or copied since it was written
         return cfg, True
-    base = load_config(known.config) if known.config else TrainConfig()
-    return _tyro(TrainConfig, rest, base, prog), False
+    base = load_config(known.config) if known.config else (base or TrainConfig())
+    name = _algo_name(rest)
+    if name is not None and name != base.algo.name:
+        base = dataclasses.replace(base, algo=config_class(name)())  # that algorithm's defaults
+    return _parse(TrainConfig, rest, base, prog), False
+
+
+def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
+    return _train_config_from_argv(argv, prog, allow_resume)
 
 
 def cmd_demos(argv: list[str]) -> int:
     from stepnft.data.demos import generate_demos
-    from stepnft.envs.metaworld import validate_tasks
+    from stepnft.envs import get_simulator
 
-    args = _tyro(DemosArgs, argv, DemosArgs(), "stepnft demos")
-    tasks = validate_tasks(args.tasks[0] if len(args.tasks) == 1 else args.tasks)
-    _writable_dir(args.out, "--out")
-    path = generate_demos(tasks, args.episodes, args.out, seed=args.seed, action_noise=args.action_noise,
-                          max_episode_steps=args.max_episode_steps)
-    print(f"wrote {args.episodes} episodes x {len(tasks)} tasks to {path}")
+    from stepnft.config import DemosCommand
+
+    args = _parse(DemosCommand, _translate_legacy(argv, "demos"), DemosCommand(), "stepnft demos")
+    sim = get_simulator(args.env.name)
+    tasks = sim.validate_tasks(args.env.tasks)
+    _writable_dir(args.demos.path, "--demos.path")
+    path = generate_demos(tasks, args.demos.episodes, args.demos.path, seed=args.demos.seed,
+                          action_noise=args.demos.action_noise, max_episode_steps=args.env.max_episode_steps,
+                          simulator=sim, max_attempts=args.demos.max_attempts)
+    discarded = json.loads((path / "manifest.json").read_text())["generator"]["discarded"]
+    print(f"wrote {args.demos.episodes} successful episodes x {len(tasks)} tasks to {path} "
+          f"(failed expert attempts discarded: {sum(discarded.values())})")
     return 0
 
 
 def cmd_sft(argv: list[str]) -> int:
     from stepnft.train import run_sft
 
-    cfg, _ = _config_from_argv(argv, "stepnft sft", allow_resume=False)
+    cfg, _ = _train_config_from_argv(argv, "stepnft sft", allow_resume=False)
     run_sft(cfg)
     return 0
 
@@ -205,39 +186,41 @@ def cmd_sft(argv: list[str]) -> int:
 def cmd_train(argv: list[str]) -> int:
     from stepnft.train import train
 
-    cfg, resume = _config_from_argv(argv, "stepnft train", allow_resume=True)
+    cfg, resume = _train_config_from_argv(argv, "stepnft train", allow_resume=True)
     train(cfg, resume=resume)
     return 0
 
 
 def cmd_eval(argv: list[str]) -> int:
-    from stepnft.checkpoint import write_atomic
-    from stepnft.config import TrainConfig
-    from stepnft.envs.metaworld import make_metaworld_vec_env, validate_tasks
-    from stepnft.evaluate import RenderingError, evaluate_policy, format_table, record_videos
-    from stepnft.policies.flow import FlowPolicy
-    from stepnft.train import language_table
+    from stepnft.envs import get_simulator, make_vec_env
+    from stepnft.evaluate import evaluate_policy, format_table, record_videos
+    from stepnft.envs.base import RenderingError
+    from stepnft.policies.base import load_policy
+    from stepnft.runs import write_atomic
 
-    args = _tyro(EvalArgs, argv, EvalArgs(), "stepnft eval")
-    tasks = validate_tasks(args.tasks[0] if len(args.tasks) == 1 else args.tasks)
-    policy = FlowPolicy.from_pretrained(args.policy)
+    from stepnft.config import EvalCommand
+
+    args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
+    sim = get_simulator(args.env.name)
+    tasks = sim.validate_tasks(args.env.tasks)
+    policy = load_policy(args.policy)
     # Fail on an unwritable output before spending time on episodes.
     out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
     video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None
-    cfg = TrainConfig(language_encoder=args.language_encoder, policy=policy.config)
-    lang_table = language_table(cfg, tasks)
-    if args.episodes > 0:
-        venv = make_metaworld_vec_env(tasks, args.envs_per_task, policy.config.n_exec, args.max_episode_steps,
-                                      seed=args.seed, autoreset=False)
-        result = evaluate_policy(policy, venv, lang_table, args.episodes, args.seed)
-        venv.close()
+    policy.processor.bind_instructions([sim.instruction(t) for t in tasks])
+    if args.eval.episodes > 0:
+        venv = make_vec_env(args.env, policy.config.n_exec, seed=args.eval.seed)
+        try:
+            result = evaluate_policy(policy, venv, args.eval.episodes, args.eval.seed)
+        finally:
+            venv.close()
         print(format_table(None, result))
         if out:
             write_atomic(out, json.dumps(result, indent=2))
     if video_dir:
         try:
-            paths = record_videos(policy, tasks, video_dir, lang_table, seed=args.seed, episodes=args.video_episodes,
-                                  max_episode_steps=args.max_episode_steps)
+            paths = record_videos(policy, sim, tasks, video_dir, seed=args.eval.seed, episodes=args.video_episodes,
+                                  max_episode_steps=args.env.max_episode_steps)
         except RenderingError as err:  # the machine, not the input: exit code 1
             print(f"stepnft eval: error: {err}", file=sys.stderr)
             return 1
@@ -247,7 +230,7 @@ def cmd_eval(argv: list[str]) -> int:
 
 def _writable_dir(path: str | Path, flag: str) -> Path:
     """Create folder ``path`` if needed and check a file can be written there."""
-    from stepnft.train import prepare_run_dir
+    from stepnft.runs import prepare_run_dir
 
     try:
         return prepare_run_dir(path)
@@ -257,13 +240,12 @@ def _writable_dir(path: str | Path, flag: str) -> Path:
 
 
 def cmd_demo_bandit(argv: list[str]) -> int:
-    from stepnft.demo_bandit import BanditDemoConfig, run_bandit_demo, with_overrides
+    from stepnft.demo_bandit import bandit_config, run_bandit_demo
 
-    args = _tyro(BanditArgs, argv, BanditArgs(), "stepnft demo-bandit")
-    cfg = with_overrides(dataclasses.replace(BanditDemoConfig(), seed=args.seed, iterations=args.iterations),
-                         noise_level=args.noise_level, target=args.target, form=args.form, beta=args.beta)
-    history = run_bandit_demo(cfg)
-    print(f"success {history[0]['success']:.3f} (SFT) -> {history[-1]['success']:.3f} (π-StepNFT)")
+    cfg, _ = _train_config_from_argv(_translate_legacy(argv, "demo-bandit"), "stepnft demo-bandit",
+                                     allow_resume=False, base=bandit_config())
+    summary = run_bandit_demo(cfg)
+    print(f"success {summary['average']['before']:.3f} (SFT) -> {summary['average']['after']:.3f} ({cfg.algo.name})")
     return 0
 
 
@@ -275,7 +257,7 @@ def _usage() -> str:
     sections = ", ".join(f"--{name}.*" for name in CONFIG_SECTIONS)
     return (f"usage: stepnft COMMAND [flags]   (stepnft COMMAND --help lists every flag)\n\n"
             f"Online RL fine-tuning of flow-matching robot policies with π-StepNFT.\n\ncommands:\n{rows}\n\n"
-            f"sft and train read --config FILE.yaml, then flags by section: {sections}\n")
+            f"sft, train and demo-bandit read --config FILE.yaml, then flags by section: {sections}\n")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,10 @@
 """The run configuration: typed dataclasses, saved and loaded as YAML.
 
-One schema serves ``stepnft sft``, ``train`` and ``eval``; a run directory's ``config.yaml``
-reproduces the run (``stepnft train --config RUN/config.yaml``). CLI flags override YAML.
+One schema serves every command: ``stepnft sft`` and ``train`` read a whole
+:class:`TrainConfig`, ``demos`` and ``eval`` the sections they need; the CLI is generated from
+these dataclasses (``stepnft.cli``). A run directory's ``config.yaml`` reproduces the run
+(``stepnft train --config RUN/config.yaml``). Every value is range-checked where its section
+is built, so YAML files and flags get the same checks.
 """
 
 from __future__ import annotations
@@ -14,19 +17,21 @@ from pathlib import Path
 
 import yaml
 
+from stepnft.algos.base import AlgoConfig, config_class
 from stepnft.algos.sft import SFTConfig
-from stepnft.envs import DEFAULT_TASKS
 from stepnft.algos.stepnft import StepNFTConfig
+from stepnft.envs import DEFAULT_TASKS, SIMULATORS
 from stepnft.policies.flow import FlowPolicyConfig
-
 
 
 @dataclass
 class EnvConfig:
-    """Which MetaWorld v3 tasks run, and how."""
+    """Which simulator and tasks run, and how."""
 
+    name: str = "metaworld"
+    """Simulator: metaworld (MetaWorld v3, the default) or bandit (a toy for tests)."""
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
-    """MetaWorld v3 task names; one multi-task policy serves all of them."""
+    """Task names (space- or comma-separated); one multi-task policy serves all of them."""
     envs_per_task: int = 4
     """Parallel simulator instances per task (each plays one episode per rollout wave)."""
     max_episode_steps: int = 200
@@ -35,35 +40,53 @@ class EnvConfig:
     """End an episode at its first success (the episode then counts as a success)."""
     num_workers: int = 0
     """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
-    cores of a 2-core machine, one process per sub-env)."""
+    cores of a 2-core machine)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.tasks, str):
-            self.tasks = [t.strip() for t in self.tasks.split(",") if t.strip()]
+            self.tasks = [self.tasks]
+        self.tasks = [t.strip() for item in self.tasks for t in item.split(",") if t.strip()]
+        if self.name not in SIMULATORS:
+            raise ValueError(f"env.name={self.name!r} is unknown; choose one of: {', '.join(SIMULATORS)}")
         if self.envs_per_task < 1:
             raise ValueError(f"env.envs_per_task must be >= 1, got {self.envs_per_task}")
-        if not 1 <= self.max_episode_steps <= 500:
-            raise ValueError(f"env.max_episode_steps must be in 1..500, got {self.max_episode_steps}")
+        cap = SIMULATORS[self.name].max_episode_steps
+        if not 1 <= self.max_episode_steps <= cap:
+            raise ValueError(f"env.max_episode_steps must be in 1..{cap}, got {self.max_episode_steps}")
+        if self.num_workers < 0:
+            raise ValueError(f"env.num_workers must be >= 0, got {self.num_workers}")
 
 
 @dataclass
 class DemoConfig:
-    """Few-shot demonstrations from MetaWorld's scripted experts."""
+    """Few-shot demonstrations from the simulator's scripted experts."""
 
     path: str = "demos/default"
     """Folder of demonstrations (generated there if missing)."""
     episodes: int = 5
-    """Demonstrations per task (few-shot)."""
+    """Successful demonstrations per task (few-shot)."""
     task_episodes: dict[str, int] = field(default_factory=dict)
     """Per-task overrides of ``episodes`` (e.g. fewer on tasks SFT already saturates)."""
+    max_attempts: int | None = None
+    """Expert episodes tried per task before giving up (None: 5 x the demonstrations wanted);
+    failed attempts are discarded and counted in the manifest."""
     action_noise: float = 0.0
     """Std of Gaussian noise added to the expert's actions."""
+    successful_only: bool = True
+    """Keep only the expert's successful episodes (False: keep every attempt, e.g. for a
+    deliberately imperfect demonstrator)."""
     seed: int = 0
     """Seed of the demonstrations' initial states (disjoint from evaluation states)."""
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or any(n < 1 for n in self.task_episodes.values()):
             raise ValueError(f"demos.episodes and demos.task_episodes must be >= 1, got {self.episodes}, {self.task_episodes}")
+        if self.max_attempts is not None and self.max_attempts < max(self.episodes, *self.task_episodes.values()):
+            raise ValueError(f"demos.max_attempts must be >= the demonstrations wanted, got {self.max_attempts}")
+        if not 0 <= self.action_noise < float("inf"):
+            raise ValueError(f"demos.action_noise must be a finite number >= 0, got {self.action_noise}")
+        if self.seed < 0:
+            raise ValueError(f"demos.seed must be >= 0, got {self.seed}")
 
     def count(self, task: str) -> int:
         """Demonstrations used for ``task``."""
@@ -82,29 +105,30 @@ class EvalConfig:
     """Iterations between evaluations during training (0: only before and after)."""
     during_episodes: int = 20
     """Episodes per task for the evaluations during training (cheap, noisier)."""
-    use_ema: bool = False
-    """Evaluate the EMA rollout policy instead of the trained one."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 0 or self.every < 0 or self.during_episodes < 1 or self.seed < 0:
+            raise ValueError(f"eval.episodes, eval.every and eval.seed must be >= 0 and eval.during_episodes >= 1, got "
+                             f"{self.episodes}, {self.every}, {self.seed}, {self.during_episodes}")
 
 
 @dataclass
 class TrainConfig:
-    """A π-StepNFT run on MetaWorld: demonstrations -> few-shot SFT -> online RL -> evaluation."""
+    """A run: demonstrations -> few-shot SFT -> online RL (π-StepNFT by default) -> evaluation."""
 
     run_dir: str = "runs/stepnft"
     """Output folder: config.yaml, metrics.jsonl, TensorBoard logs, checkpoints, curves, summary."""
     seed: int = 0
     """Seeds every source of randomness (torch, sampler noise, simulator)."""
     iterations: int = 60
-    """RL iterations: collect rollouts -> update epochs -> EMA update."""
+    """RL iterations: collect rollouts -> update -> end-of-iteration step (e.g. the EMA update)."""
     episodes_per_iteration: int = 20
-    """Episodes collected per iteration (rounded up to a multiple of the number of envs)."""
+    """Episodes collected per iteration (rounded up to whole waves of all parallel envs)."""
     env_step_budget: int | None = None
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
     init: str | None = None
-    """SFT policy folder to start from; None: run few-shot SFT on the demonstrations first."""
-    language_encoder: str = "default"
-    """Frozen sentence encoder: 'default' (packaged all-MiniLM-L6-v2) or a local folder."""
+    """Saved policy folder to start from; None: run few-shot SFT on the demonstrations first."""
     checkpoint_every: int = 10
     """Iterations between checkpoints (the last one is always written)."""
     num_threads: int = 1
@@ -113,20 +137,63 @@ class TrainConfig:
     demos: DemoConfig = field(default_factory=DemoConfig)
     policy: FlowPolicyConfig = field(default_factory=FlowPolicyConfig)
     sft: SFTConfig = field(default_factory=SFTConfig)
-    algo: StepNFTConfig = field(default_factory=StepNFTConfig)
+    algo: AlgoConfig = field(default_factory=StepNFTConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
     def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ValueError(f"iterations must be >= 0, got {self.iterations}")
-        if self.episodes_per_iteration < 1:
-            raise ValueError(f"episodes_per_iteration must be >= 1, got {self.episodes_per_iteration}")
-        if self.checkpoint_every < 1:
-            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+        checks = {
+            "iterations": self.iterations >= 0,
+            "episodes_per_iteration": self.episodes_per_iteration >= 1,
+            "checkpoint_every": self.checkpoint_every >= 1,
+            "num_threads": self.num_threads >= 1,
+            "env_step_budget": self.env_step_budget is None or self.env_step_budget >= 1,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"{bad[0]}={getattr(self, bad[0])!r} is invalid: iterations must be >= 0, "
+                             "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1")
+
+
+@dataclass
+class DemosCommand:
+    """Generate scripted-expert demonstrations: expert episodes until N successes per task."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    demos: DemoConfig = field(default_factory=DemoConfig)
+
+
+@dataclass
+class EvalCommand:
+    """Evaluate a saved policy on a fixed, seeded set of initial states (ODE sampling)."""
+
+    policy: str = "runs/stepnft/policy"
+    """Policy folder (config.json + model.safetensors), e.g. RUN/policy or RUN/sft_policy."""
+    out: str | None = None
+    """Also write the results as JSON to this file."""
+    video_dir: str | None = None
+    """Also record ODE episodes as ``DIR/<task>_ep<e>_<success|fail>.mp4`` (needs offscreen
+    rendering: MUJOCO_GL=egl)."""
+    video_episodes: int = 1
+    """Episodes recorded per task with --video-dir (episode e starts from eval state seed + e)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+    def __post_init__(self) -> None:
+        if self.video_episodes < 1:
+            raise ValueError(f"video_episodes must be >= 1, got {self.video_episodes}")
+
 
 
 def to_dict(cfg) -> dict:
-    return dataclasses.asdict(cfg)
+    """Plain nested dict of a config (tuples as lists, so it is safe YAML)."""
+    def plain(value):
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(dataclasses.asdict(cfg))
 
 
 def _matches(value, hint) -> bool:
@@ -135,8 +202,12 @@ def _matches(value, hint) -> bool:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
         return any(_matches(value, a) for a in args)
+    if origin is typing.Literal:
+        return value in args
     if origin is list:
         return isinstance(value, str) or (isinstance(value, list) and all(_matches(v, args[0]) for v in value))
+    if origin is tuple:
+        return isinstance(value, (list, tuple)) and len(value) == len(args) and all(map(_matches, value, args))
     if origin is dict:
         return isinstance(value, dict) and all(_matches(k, args[0]) and _matches(v, args[1]) for k, v in value.items())
     if hint is type(None):
@@ -148,11 +219,20 @@ def _matches(value, hint) -> bool:
     return isinstance(value, hint)
 
 
+def _describe_hint(hint) -> str:
+    if typing.get_origin(hint) is typing.Literal:
+        return " or ".join(repr(a) for a in typing.get_args(hint))
+    return hint.__name__ if isinstance(hint, type) else str(hint).replace("typing.", "")
+
+
 def from_dict(cls, data: dict, where: str = ""):
     """Build dataclass ``cls`` from a nested dict. An unknown key or a value of the wrong type
-    is a ValueError naming it, raised before any section's own checks run."""
+    is a ValueError naming it, raised before any section's own checks run. An ``algo`` section
+    is built as the config class of its ``name``."""
     if not isinstance(data, dict):
         raise ValueError(f"config section {where or 'root'} must be a mapping, got {type(data).__name__}")
+    if cls is AlgoConfig:
+        cls = config_class(data.get("name", StepNFTConfig.name))
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     kwargs = {}
@@ -163,8 +243,7 @@ def from_dict(cls, data: dict, where: str = ""):
         if dataclasses.is_dataclass(hint):
             value = from_dict(hint, value or {}, f"{where}{key}.")
         elif not _matches(value, hint):
-            expected = hint.__name__ if isinstance(hint, type) else str(hint)
-            raise ValueError(f"{where}{key}={value!r} has the wrong type, expected {expected}")
+            raise ValueError(f"{where}{key}={value!r} has the wrong type, expected {_describe_hint(hint)}")
         elif hint is float:
             value = float(value)
         kwargs[key] = value
@@ -172,7 +251,9 @@ def from_dict(cls, data: dict, where: str = ""):
 
 
 def save_config(cfg, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    from stepnft.runs import write_atomic
+
+    write_atomic(path, yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
 def load_config(path: str | Path, cls=TrainConfig):

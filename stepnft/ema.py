@@ -1,4 +1,4 @@
-"""The EMA rollout policy ``v_old`` and its cosine decay schedule (SPEC §5)."""
+"""The EMA rollout policy ``v_old`` and its cosine decay schedule (docs/algorithm.md §5)."""
 
 from __future__ import annotations
 
@@ -36,8 +36,12 @@ def _frozen_children(model: nn.Module) -> list[nn.Module]:
 
 
 def make_ema_copy(model: nn.Module) -> nn.Module:
-    """A copy of ``model`` for rollouts; frozen sub-modules are shared, not copied."""
+    """A copy of ``model`` for rollouts; frozen sub-modules (and a policy's input processor)
+    are shared, not copied."""
     memo = {id(m): m for m in _frozen_children(model)}
+    processor = getattr(model, "processor", None)
+    if processor is not None:
+        memo[id(processor)] = processor
     ema = copy.deepcopy(model, memo)
     for p in ema.parameters():
         p.requires_grad_(False)

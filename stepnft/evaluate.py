@@ -13,11 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
 
-from stepnft.envs.metaworld import SIM_STEPS_PER_SECOND, MetaWorldChunkEnv
-from stepnft.policies.flow import FlowPolicy
-from stepnft.rollout.collector import run_wave
+from stepnft.policies.base import Policy
+from stepnft.rollout.collector import Collector
 
 
 def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[float, float]:
@@ -31,21 +29,16 @@ def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def evaluate_policy(
-    policy: FlowPolicy,
-    venv,
-    lang_table: Tensor | None,
-    episodes: int,
-    seed: int = 0,
-    progress=None,
-) -> dict:
+def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress=None) -> dict:
     """Success per task over ``episodes`` episodes each, ODE sampling.
 
-    ``venv`` has ``envs_per_task`` sub-envs per task (autoreset disabled); each wave plays
-    ``envs_per_task`` new episodes of every task. Returns ``{"tasks": {task: {...}},
-    "average": rate, "episodes": per task, "env_steps": total}``.
+    ``venv`` is a chunk vector env with the same number of sub-envs per task; each wave plays
+    that many new episodes of every task. ``policy.processor`` must be bound to
+    ``venv.instructions``. Returns ``{"tasks": {task: {...}}, "average": rate, "episodes": per
+    task, "env_steps": total}``.
     """
     policy.eval()
+    collector = Collector(venv)
     task_ids = np.asarray(venv.task_ids)
     n_tasks = len(venv.tasks)
     per_task = len(task_ids) // n_tasks
@@ -58,15 +51,12 @@ def evaluate_policy(
     waves = math.ceil(episodes / per_task)
     for w in range(waves):
         episode = w * per_task + slot
-        wave = run_wave(
-            policy, venv, lang_table, noise_level=0.0,
-            generator=torch.Generator().manual_seed(seed * 100_003 + w),
-            seeds=[int(seed + e) for e in episode],
-        )
+        wave = collector.play_wave(policy, 0.0, torch.Generator().manual_seed(seed * 100_003 + w),
+                                   seeds=[int(seed + e) for e in episode])
         valid = episode < episodes
-        np.add.at(successes, task_ids[valid], wave.success[valid])
+        np.add.at(successes, task_ids[valid], wave.episode_success.numpy()[valid])
         np.add.at(counts, task_ids[valid], 1)
-        env_steps += int(wave.length.sum())
+        env_steps += wave.env_steps
         if progress is not None:
             progress(w + 1, waves)
     tasks = {}
@@ -93,27 +83,24 @@ def format_table(before: dict | None, after: dict) -> str:
     return "\n".join(lines)
 
 
-class RenderingError(RuntimeError):
-    """Offscreen rendering is unavailable on this machine."""
-
-
 def record_videos(
-    policy: FlowPolicy,
+    policy: Policy,
+    simulator,
     tasks: list[str],
     out_dir: str | Path,
-    lang_table: Tensor | None,
     seed: int = 0,
     episodes: int = 1,
     max_episode_steps: int = 200,
-    width: int = 224,
-    height: int = 224,
+    size: tuple[int, int] = (224, 224),
 ) -> list[Path]:
     """Film ODE episodes as ``out_dir/<task>_ep<e>_<success|fail>.mp4``; returns the paths.
 
     Episode ``e`` of a task starts from evaluation initial state ``seed + e``; its sampler noise
     is its own, so its outcome may differ from that episode's in :func:`evaluate_policy`. A
     frame at reset and one after every env step (the chunk's actions are played one at a
-    time), at the simulator's real-time rate. ``lang_table`` rows follow ``tasks``.
+    time), at the simulator's real-time rate. ``policy.processor`` must be bound to ``tasks``'
+    instructions, in order. Raises :class:`~stepnft.envs.base.RenderingError` without
+    offscreen rendering.
     """
     import imageio.v2 as imageio
 
@@ -123,18 +110,15 @@ def record_videos(
     policy.eval()
     paths = []
     for k, task in enumerate(tasks):
-        env = MetaWorldChunkEnv(task, n_exec=1, max_episode_steps=max_episode_steps, render_mode="rgb_array",
-                                camera_name="corner2", width=width, height=height)
+        env = simulator.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, render_size=size)
         try:
-            _prepare_renderer(env)
-            lang = lang_table[k : k + 1] if lang_table is not None else None
             for e in range(episodes):
                 generator = torch.Generator().manual_seed(seed * 100_003 + e)
-                frames, success = _play_filmed(policy, env, lang, seed + e, generator)
+                frames, success = _play_filmed(policy, env, k, seed + e, generator)
                 outcome = "success" if success else "fail"
                 path = out_dir / f"{task}_ep{e}_{outcome}.mp4"
                 tmp = out_dir / f".{path.stem}.tmp.mp4"
-                with imageio.get_writer(tmp, fps=SIM_STEPS_PER_SECOND, codec="libx264") as writer:
+                with imageio.get_writer(tmp, fps=simulator.control_hz, codec="libx264") as writer:
                     for frame in frames:
                         writer.append_data(frame)
                 os.replace(tmp, path)
@@ -145,30 +129,15 @@ def record_videos(
     return paths
 
 
-def _prepare_renderer(env: MetaWorldChunkEnv) -> None:
-    """Create the offscreen viewer and turn shadows and reflections off (about 3x faster)."""
-    import mujoco
-
-    try:
-        env.reset(seed=0)
-        env.render()
-    except Exception as err:  # noqa: BLE001 - GL failures come as several error types
-        raise RenderingError(f"offscreen rendering failed ({str(err).splitlines()[0]}): set MUJOCO_GL=egl "
-                             "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)") from err
-    # MetaWorld's gymnasium MujocoRenderer keeps the viewer it made for "rgb_array" in `.viewer`.
-    scene = env._sim.mujoco_renderer.viewer.scn
-    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-
-
-def _play_filmed(policy: FlowPolicy, env: MetaWorldChunkEnv, lang: Tensor | None, seed: int,
+def _play_filmed(policy: Policy, env, task_index: int, seed: int,
                  generator: torch.Generator) -> tuple[list[np.ndarray], bool]:
-    """One ODE episode on a one-action ``env``; frames ``[H, W, 3]`` uint8 and its success."""
+    """One ODE episode on a one-action chunk env; frames ``[H, W, 3]`` uint8 and its success."""
     obs, info = env.reset(seed=seed)
     frames = [env.render()]
     done = False
     while not done:
-        sample = policy.sample(torch.as_tensor(obs[None]), lang, noise_level=0.0, generator=generator)
+        raw = {k: torch.as_tensor(v[None]) for k, v in obs.items()} | {"task": torch.tensor([task_index])}
+        sample = policy.sample(policy.processor(raw), noise_level=0.0, generator=generator)
         for action in sample.actions[0, : policy.config.n_exec].clamp(-1.0, 1.0).numpy():
             obs, _, terminated, truncated, info = env.step(action[None])
             frames.append(env.render())

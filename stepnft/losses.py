@@ -1,4 +1,4 @@
-"""π-StepNFT objective, its ablations, and the flow-matching SFT loss (SPEC §1, §4, §6).
+"""π-StepNFT objective, its ablations, and the flow-matching SFT loss (docs/algorithm.md §1, §4, §6).
 
 Pure functions that return ``(loss, metrics)``: ``metrics`` holds every named term as a
 detached float so trainers can log them and tests can check them.
@@ -49,7 +49,7 @@ def stepnft_loss(
     actions: Tensor | None = None,
     weight: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The π-StepNFT step-wise contrastive ranking loss (SPEC §4).
+    """The π-StepNFT step-wise contrastive ranking loss (docs/algorithm.md §4).
 
     Args:
         v: policy velocity at ``(x_t, t)``, with grad, ``[B, H, A]``.
@@ -127,7 +127,7 @@ def stepnft_loss(
 
 
 def flow_matching_loss(v_pred: Tensor, v_target: Tensor, mask: Tensor | None = None) -> Tensor:
-    """SFT flow-matching loss ``||v_θ(x_t, t) - (eps - x0)||^2`` (SPEC §1).
+    """SFT flow-matching loss ``||v_θ(x_t, t) - (eps - x0)||^2`` (docs/algorithm.md §1).
 
     ``v_pred``, ``v_target``: ``[B, H, A]``; ``mask``: ``[B, H]`` (padded positions excluded).
     Squared error summed over action dims, averaged over valid positions.

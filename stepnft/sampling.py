@@ -1,4 +1,4 @@
-"""ODE and Flow-SDE denoising steps and chunk samplers (SPEC §1–3). Pure functions.
+"""ODE and Flow-SDE denoising steps and chunk samplers (docs/algorithm.md §1–3). Pure functions.
 
 Convention: ``x_t = (1 - t) * x0 + t * eps``; ``t = 1`` is pure noise, ``t = 0`` the action.
 A chunk is denoised over ``K`` steps on the grid ``t_k = 1 - k / K``; step ``k`` goes from
@@ -26,7 +26,7 @@ def sde_step_coeffs(t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, 
     """Coefficients of one Flow-SDE step: ``mean = u * x_t + b * v``, ``x_next ~ N(mean, std^2)``.
 
     ``t``, ``dt``: ``[B]``. Returns ``u``, ``b``, ``std``, each ``[B, 1, 1]``.
-    ``sigma_t = a * sqrt(t / (1 - t))``; at ``t = 1`` the denominator is ``dt`` (SPEC §2).
+    ``sigma_t = a * sqrt(t / (1 - t))``; at ``t = 1`` the denominator is ``dt`` (docs/algorithm.md §2).
     """
     t, dt = _col(t), _col(dt)
     one_minus_t = torch.where(t >= 1.0 - 1e-6, dt, 1.0 - t)
@@ -38,7 +38,7 @@ def sde_step_coeffs(t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, 
 
 
 def sde_step_mean_std(x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, Tensor]:
-    """Mean and std of the Flow-SDE step ``x_t -> x_{t-dt}`` (SPEC §2).
+    """Mean and std of the Flow-SDE step ``x_t -> x_{t-dt}`` (docs/algorithm.md §2).
 
     ``x_t``, ``v``: ``[B, H, A]``; ``t``, ``dt``: ``[B]``. ``std`` is ``[B, 1, 1]``.
     ``noise_level = 0`` gives the Euler ODE step ``x_t - dt * v`` with ``std = 0``.
@@ -66,7 +66,7 @@ def sample_flow_time(batch: int, generator: torch.Generator | None = None, law: 
 
 @dataclass
 class ChunkSample:
-    """A sampled action chunk and the one recorded denoising step training needs (SPEC §3).
+    """A sampled action chunk and the one recorded denoising step training needs (docs/algorithm.md §3).
 
     Shapes: ``actions``, ``x_t``, ``x_next``, ``v_old``: ``[B, H, A]``; ``step``, ``t``, ``dt``: ``[B]``.
     """

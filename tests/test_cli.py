@@ -9,9 +9,8 @@ import pytest
 import torch
 
 from stepnft.checkpoint import save_checkpoint
-from stepnft.cli import COMMANDS, CONFIG_SECTIONS, main
+from stepnft.cli import COMMANDS, CONFIG_SECTIONS, _config_from_argv, main
 from stepnft.config import EnvConfig, TrainConfig, save_config
-from stepnft.envs.metaworld import get_rng_states, make_metaworld_vec_env
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
 
 
@@ -41,11 +40,7 @@ def workspace(tmp_path_factory):
     run.mkdir()
     save_config(cfg, run / "config.yaml")
     policy = tiny_policy()
-    rng = {"generator": torch.Generator().get_state(), "torch": torch.get_rng_state()}
-    venv = make_metaworld_vec_env(["reach-v3"], 1, max_episode_steps=10, autoreset=False)
-    save_checkpoint(run, 2, policy, tiny_policy(), torch.optim.AdamW(policy.parameters()),
-                    {"env_steps": 20, "before": {}, "env_rng": get_rng_states(venv)}, rng)
-    venv.close()
+    save_checkpoint(run, 2, policy, {"env_steps": 20, "before": {}, "torch_rng": torch.get_rng_state()})
     (run / "metrics.jsonl").write_text(json.dumps({"iteration": 0, "env_steps": 0}) + "\n")
     (run / "summary.json").write_text("{}")
     policy.save_pretrained(root / "policy")
@@ -83,8 +78,28 @@ def test_help_lists_every_command_and_config_section(capsys):
     assert code == 0
     assert all(f"--{s}." in out for s in CONFIG_SECTIONS)
     assert "--config" in out and "--resume" in out
+    assert "{next,x0}" in out and "{rank,wmse}" in out  # choice fields list their choices
+    assert "--algo.name" in out and "stepnft" in out
     for command in ("sft", "eval", "demos", "demo-bandit"):
         assert run_cli(capsys, command, "--help")[0] == 0
+
+
+def test_legacy_flags_mean_the_same_as_the_section_flags(tmp_path):
+    from stepnft.cli import _parse, _translate_legacy
+    from stepnft.config import DemosCommand, EvalCommand
+
+    old = _parse(DemosCommand, _translate_legacy(["--out", "d", "--tasks", "reach-v3", "--episodes=3"], "demos"),
+                 DemosCommand(), "x")
+    new = _parse(DemosCommand, ["--demos.path", "d", "--env.tasks", "reach-v3", "--demos.episodes", "3"],
+                 DemosCommand(), "x")
+    assert old == new and new.demos.episodes == 3 and new.env.tasks == ["reach-v3"]
+    old = _parse(EvalCommand, _translate_legacy(["--episodes", "7", "--seed", "2"], "eval"), EvalCommand(), "x")
+    assert (old.eval.episodes, old.eval.seed) == (7, 2)
+
+
+def test_comma_separated_tasks_work_everywhere():
+    cfg, _ = _config_from_argv(["--env.tasks", "reach-v3,push-v3"], "stepnft train", True)
+    assert cfg.env.tasks == ["reach-v3", "push-v3"]
 
 
 @pytest.mark.parametrize("argv, expected", [
@@ -94,7 +109,11 @@ def test_help_lists_every_command_and_config_section(capsys):
     (["train", "--iterations", "-1"], "iterations must be >= 0"),
     (["sft", "--policy.n-exec", "9"], "policy.n_exec (9) must be <= policy.horizon (4)"),
     (["eval", "--tasks", "nope-v3"], "unknown MetaWorld task 'nope-v3'"),
-    (["eval", "--episodes", "-1"], "episodes must be >= 0"),
+    (["eval", "--episodes", "-1"], "eval.episodes, eval.every and eval.seed must be >= 0"),
+    (["eval", "--env.envs-per-task", "0"], "env.envs_per_task must be >= 1"),
+    (["train", "--algo.name", "dqn"], "unknown algorithm 'dqn'; choose one of: stepnft"),
+    (["train", "--env.name", "gazebo"], "env.name='gazebo' is unknown; choose one of: metaworld, bandit"),
+    (["train", "--algo.sde-steps", "one"], "sde_steps=one needs algo.record_steps=one"),
 ])
 def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
     command = argv[0]
@@ -111,6 +130,8 @@ def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
     ("env:\n  tasks: 5\n", "env.tasks=5 has the wrong type"),
     ("algo:\n  lr: -1\n", "algo.lr=-1.0 is invalid"),
     ("iterations: [1\n", "is not valid YAML"),
+    ("algo:\n  target: x1\n", "algo.target='x1' has the wrong type, expected 'next' or 'x0'"),
+    ("algo:\n  name: dqn\n", "unknown algorithm 'dqn'"),
 ])
 def test_bad_yaml_configs_are_one_line(capsys, tmp_path, existing_run, yaml_text, expected):
     config = tmp_path / "config.yaml"
@@ -175,7 +196,7 @@ def test_unwritable_outputs_fail_before_any_work(capsys, workspace):
     cases = [
         (["train", "--run-dir", under_a_file, "--env.tasks", "reach-v3"], "train", "choose another --run-dir"),
         (["sft", "--run-dir", under_a_file], "sft", "choose another --run-dir"),
-        (["demos", "--out", under_a_file, "--tasks", "reach-v3"], "demos", "choose another --out"),
+        (["demos", "--out", under_a_file, "--tasks", "reach-v3"], "demos", "choose another --demos.path"),
         (["eval", "--policy", policy, "--tasks", "reach-v3", "--out", under_a_file / "r.json"], "eval", "choose another --out"),
         (["eval", "--policy", policy, "--tasks", "reach-v3", "--video-dir", under_a_file], "eval", "choose another --video-dir"),
     ]

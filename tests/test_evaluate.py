@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from stepnft.envs.metaworld import make_metaworld_vec_env
-from stepnft.evaluate import RenderingError, evaluate_policy, format_table, record_videos, wilson_interval
+from stepnft.algos.base import RolloutSpec
+from stepnft.envs.base import RenderingError
+from stepnft.envs.metaworld import MetaWorld, make_metaworld_vec_env
+from stepnft.evaluate import evaluate_policy, format_table, record_videos, wilson_interval
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
-from stepnft.rollout.collector import run_wave
+from stepnft.rollout.collector import Collector
 
 GOAL, HAND = slice(36, 39), slice(0, 3)
 
@@ -18,15 +20,16 @@ class GoalSeeker(FlowPolicy):
     """A random flow policy steered toward the reach goal: whether an episode succeeds depends
     on its initial state and on the sampler's noise."""
 
-    def sample(self, state, lang=None, noise_level=0.0, generator=None, stochastic_steps="all"):
-        out = super().sample(state, lang, noise_level, generator, stochastic_steps)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+        state = obs["state"]
         out.actions[..., :3] += 10.0 * (state[:, None, GOAL] - state[:, None, HAND])
         return out
 
 
 def goal_seeker() -> GoalSeeker:
     torch.manual_seed(0)
-    return GoalSeeker(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    return GoalSeeker(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, state_clip=100.0))
 
 
 def wilson_by_quadratic(k: int, n: int, z: float) -> tuple[float, float]:
@@ -55,21 +58,22 @@ def test_wilson_interval_known_values():
 
 def test_evaluation_depends_only_on_the_policy_and_the_eval_seed():
     policy = goal_seeker()
-    venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=0, autoreset=False)
+    venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=0)
     reset_seeds = []
     reset = venv.reset
     venv.reset = lambda seed=None, **kw: (reset_seeds.append(seed), reset(seed=seed, **kw))[1]
 
-    first = evaluate_policy(policy, venv, None, episodes=5, seed=3)
+    first = evaluate_policy(policy, venv, episodes=5, seed=3)
     # Episode e starts from state seed + e; the third wave's second sub-env plays a spare episode.
     assert reset_seeds == [[3, 4], [5, 6], [7, 8]]
     assert first["tasks"]["reach-v3"]["episodes"] == 5
     assert 0 < first["tasks"]["reach-v3"]["successes"] < 5, "the check below needs mixed outcomes"
 
-    run_wave(policy, venv, None, 0.2, torch.Generator().manual_seed(1))  # a training wave moves the env streams
-    again = evaluate_policy(policy, venv, None, episodes=5, seed=3)
-    other_venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=12345, autoreset=False)
-    fresh = evaluate_policy(policy, other_venv, None, episodes=5, seed=3)
+    # A training wave moves the env streams.
+    Collector(venv).play_wave(policy, 0.2, torch.Generator().manual_seed(1), record=RolloutSpec(0.2))
+    again = evaluate_policy(policy, venv, episodes=5, seed=3)
+    other_venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=12345)
+    fresh = evaluate_policy(policy, other_venv, episodes=5, seed=3)
     assert first == again == fresh
     assert "reach-v3" in format_table(first, fresh)
     venv.close()
@@ -77,14 +81,14 @@ def test_evaluation_depends_only_on_the_policy_and_the_eval_seed():
 
 
 def test_initial_states_depend_only_on_the_reset_seeds():
-    a = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=0, autoreset=False)
-    b = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=99, autoreset=False)
-    unseeded_a, _ = a.reset()
-    unseeded_b, _ = b.reset()
+    a = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=0)
+    b = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, seed=99)
+    unseeded_a = a.reset()[0]["state"]
+    unseeded_b = b.reset()[0]["state"]
     assert not np.array_equal(unseeded_a, unseeded_b)  # the construction seeds do matter...
     seeds = [0, 1, 0, 1]
-    obs_a, _ = a.reset(seed=seeds)
-    obs_b, _ = b.reset(seed=seeds)
+    obs_a = a.reset(seed=seeds)[0]["state"]
+    obs_b = b.reset(seed=seeds)[0]["state"]
     np.testing.assert_array_equal(obs_a, obs_b)  # ...but not once the resets are seeded
     assert not np.array_equal(obs_a[0, GOAL], obs_a[1, GOAL])
     a.close()
@@ -96,8 +100,8 @@ def test_record_videos_writes_one_frame_per_env_step(tmp_path, monkeypatch):
 
     monkeypatch.setenv("MUJOCO_GL", "egl")
     try:
-        paths = record_videos(goal_seeker(), ["reach-v3"], tmp_path / "videos", None, seed=0, episodes=1,
-                              max_episode_steps=10, width=64, height=64)
+        paths = record_videos(goal_seeker(), MetaWorld(), ["reach-v3"], tmp_path / "videos", seed=0, episodes=1,
+                              max_episode_steps=10, size=(64, 64))
     except RenderingError as err:
         pytest.skip(f"no offscreen rendering here (EGL): {err}")
     assert paths == [tmp_path / "videos" / "reach-v3_ep0_fail.mp4"]  # 10 steps cannot reach the goal

@@ -24,7 +24,7 @@ def energies(d, noise=0.2, beta=1.0, max_drift=0.5):
 
 
 def per_position_terms(d, noise=0.2, beta=1.0, max_drift=0.5):
-    """E_pos, E_neg recomputed from SPEC §4 by hand, plus B, rho, Δc, var."""
+    """E_pos, E_neg recomputed from docs/algorithm.md §4 by hand, plus B, rho, Δc, var."""
     u, b, std = sde_step_coeffs(d["t"], d["dt"], noise)
     var = std**2 + 1e-4
     delta = d["v"] - d["v_old"]

@@ -7,7 +7,7 @@ from stepnft.sampling import ChunkSample, flow_matching_pair, sample_chunk, sde_
 
 
 def reference_step(x_t, v, t, dt, a):
-    """SPEC §2 written out for scalars, independently of the implementation."""
+    """docs/algorithm.md §2 written out for scalars, independently of the implementation."""
     one_minus_t = dt if t == 1.0 else 1.0 - t
     sigma = a * math.sqrt(t / one_minus_t)
     u = (1 - sigma**2 * dt / (2 * t)) * x_t

@@ -9,13 +9,14 @@ import torch
 from safetensors.torch import load_file
 
 import stepnft.checkpoint
-import stepnft.train
 from stepnft.algos.sft import SFTConfig, sft_train
+from stepnft.algos.stepnft import StepNFT
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.cli import _config_from_argv, main
 from stepnft.config import load_config
 from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+from stepnft.runs import read_metrics
 
 pytestmark = pytest.mark.filterwarnings("ignore:Constant:UserWarning")
 
@@ -47,10 +48,6 @@ def finished_run(tmp_path_factory, demos):
     return run_dir
 
 
-def read_metrics(run_dir) -> list[dict]:
-    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-
-
 def test_train_writes_every_artefact(finished_run, demos):
     run_dir = finished_run
 
@@ -60,7 +57,7 @@ def test_train_writes_every_artefact(finished_run, demos):
 
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
 
-    records = read_metrics(run_dir)
+    records = read_metrics(run_dir / "metrics.jsonl")
     assert [r["iteration"] for r in records] == [0, 1, 2, 3, 4, 4]
     assert "charts/success_rate" in records[0] and records[-1]["final"]
     for r in records[1:-1]:
@@ -74,8 +71,9 @@ def test_train_writes_every_artefact(finished_run, demos):
     ckpts = run_dir / "checkpoints"
     assert (ckpts / "LATEST").read_text().strip() == "iter_000004"
     assert sorted(p.name for p in ckpts.iterdir()) == ["LATEST", "iter_000002", "iter_000004"]
-    assert json.loads((ckpts / "iter_000004" / "state.json").read_text())["iteration"] == ITERATIONS
-    assert load_file(str(ckpts / "iter_000004" / "optimizer.safetensors"))  # safetensors, not pickle
+    assert load_checkpoint(run_dir)["state"]["iteration"] == ITERATIONS
+    assert load_file(str(ckpts / "iter_000004" / "state.safetensors"))  # safetensors, not pickle
+    assert FlowPolicy.from_pretrained(ckpts / "iter_000004" / "policy").config.hidden_dim == 64
 
     assert (run_dir / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -99,7 +97,7 @@ def test_resume_after_a_crash_redoes_the_lost_iterations_exactly(finished_run, d
     records of 3, redoes 3 and 4, and ends with the weights of the uninterrupted run (every RNG
     restored)."""
     run_dir = tmp_path / "crashed"
-    update, calls = stepnft.train.stepnft_update, []
+    update, calls = StepNFT.update, []
 
     def crash_on_fourth_call(*args, **kwargs):
         calls.append(1)
@@ -107,23 +105,23 @@ def test_resume_after_a_crash_redoes_the_lost_iterations_exactly(finished_run, d
             raise Crash
         return update(*args, **kwargs)
 
-    monkeypatch.setattr(stepnft.train, "stepnft_update", crash_on_fourth_call)
+    monkeypatch.setattr(StepNFT, "update", crash_on_fourth_call)
     with pytest.raises(Crash):
         main(tiny_train_args(run_dir, demos))
-    assert [r["iteration"] for r in read_metrics(run_dir)] == [0, 1, 2, 3]
+    assert [r["iteration"] for r in read_metrics(run_dir / "metrics.jsonl")] == [0, 1, 2, 3]
     assert (run_dir / "checkpoints" / "LATEST").read_text().strip() == "iter_000002"
-    monkeypatch.setattr(stepnft.train, "stepnft_update", update)
+    monkeypatch.setattr(StepNFT, "update", update)
 
     run_dir = run_dir.rename(tmp_path / "moved")  # config.yaml still names the old folder
     assert main(["train", "--resume", str(run_dir)]) == 0
 
-    records = read_metrics(run_dir)
+    records = read_metrics(run_dir / "metrics.jsonl")
     assert [r["iteration"] for r in records if not r.get("final")] == [0, 1, 2, 3, 4]
     assert [r.get("final", False) for r in records] == [False] * 5 + [True]
     assert (run_dir / "checkpoints" / "LATEST").read_text().strip() == "iter_000004"
-    assert load_checkpoint(run_dir, lambda p: torch.optim.AdamW(p.parameters()))["state"]["iteration"] == ITERATIONS
+    assert load_checkpoint(run_dir)["state"]["iteration"] == ITERATIONS
 
-    whole = read_metrics(finished_run)
+    whole = read_metrics(finished_run / "metrics.jsonl")
     for mine, theirs in zip(records, whole):
         assert mine["env_steps"] == theirs["env_steps"]
         assert {k: v for k, v in mine.items() if k.startswith("losses/")} == \
@@ -146,13 +144,31 @@ def _tiny_policy(seed: int) -> FlowPolicy:
     return FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
 
 
-def test_a_failed_checkpoint_write_leaves_the_previous_one(tmp_path, monkeypatch):
-    policy, ema = _tiny_policy(0), _tiny_policy(1)
+def _state(policy) -> dict:
     optimizer = torch.optim.AdamW(policy.parameters())
-    policy(torch.zeros(1, 39), None, torch.zeros(1, 4, 4), torch.ones(1)).sum().backward()
+    raw = {"state": torch.zeros(1, 39), "task": torch.zeros(1, dtype=torch.long)}
+    policy.velocity(policy.processor(raw), torch.zeros(1, 4, 4), torch.ones(1)).sum().backward()
     optimizer.step()
-    rng = {"generator": torch.Generator().manual_seed(0).get_state(), "torch": torch.get_rng_state()}
-    save_checkpoint(tmp_path, 1, policy, ema, optimizer, {"env_steps": 10}, rng)
+    return {"env_steps": 10, "algorithm": {"optimizer": optimizer.state_dict(), "ema": _tiny_policy(1).state_dict()},
+            "rng": torch.Generator().manual_seed(0).get_state()}
+
+
+def test_checkpoint_state_round_trips_nested_tensors_and_int_keys(tmp_path):
+    policy = _tiny_policy(0)
+    state = _state(policy) | {"before": {"tasks": {"reach-v3": {"ci95": [0.1, 0.4]}}}, "flags": (1, "a", None)}
+    save_checkpoint(tmp_path, 3, policy, state)
+    loaded = load_checkpoint(tmp_path)["state"]
+    assert loaded["iteration"] == 3 and loaded["before"] == state["before"] and loaded["flags"] == [1, "a", None]
+    assert torch.equal(loaded["rng"], state["rng"])
+    opt = loaded["algorithm"]["optimizer"]
+    assert set(opt["state"]) == set(state["algorithm"]["optimizer"]["state"])  # int keys stay ints
+    fresh = torch.optim.AdamW(_tiny_policy(0).parameters())
+    fresh.load_state_dict(opt)
+
+
+def test_a_failed_checkpoint_write_leaves_the_previous_one(tmp_path, monkeypatch):
+    policy = _tiny_policy(0)
+    save_checkpoint(tmp_path, 1, policy, _state(policy))
     saved = {k: v.clone() for k, v in policy.state_dict().items()}
 
     def killed_mid_write(*args, **kwargs):
@@ -164,27 +180,38 @@ def test_a_failed_checkpoint_write_leaves_the_previous_one(tmp_path, monkeypatch
             for p in policy.parameters():
                 p.add_(1.0)
         with pytest.raises(Crash):
-            save_checkpoint(tmp_path, 2, policy, ema, optimizer, {"env_steps": 20}, rng)
+            save_checkpoint(tmp_path, 2, policy, _state(policy) | {"env_steps": 20})
     # A writer killed outright leaves its temporary folder: it must not matter.
     (tmp_path / "checkpoints" / ".tmp-killed" / "policy").mkdir(parents=True)
 
     root = tmp_path / "checkpoints"
     assert (root / "LATEST").read_text() == "iter_000001"
     assert sorted(p.name for p in root.iterdir() if not p.name.startswith(".")) == ["LATEST", "iter_000001"]
-    ckpt = load_checkpoint(tmp_path, lambda p: torch.optim.AdamW(p.parameters()))
+    ckpt = load_checkpoint(tmp_path)
     assert ckpt["state"]["iteration"] == 1 and ckpt["state"]["env_steps"] == 10
     assert all(torch.equal(ckpt["policy"].state_dict()[k], saved[k]) for k in saved)
 
-    save_checkpoint(tmp_path, 2, policy, ema, optimizer, {"env_steps": 20}, rng)
+    save_checkpoint(tmp_path, 2, policy, _state(policy) | {"env_steps": 20})
     assert (root / "LATEST").read_text() == "iter_000002"
     assert not list(root.glob(".tmp-*"))
-    assert load_checkpoint(tmp_path, lambda p: torch.optim.AdamW(p.parameters()))["state"]["env_steps"] == 20
+    assert load_checkpoint(tmp_path)["state"]["env_steps"] == 20
+
+
+def test_envs_are_closed_when_a_run_fails(demos, tmp_path, monkeypatch):
+    from stepnft.rollout.collector import Collector
+
+    closed, close = [], Collector.close
+    monkeypatch.setattr(Collector, "close", lambda self: (closed.append(1), close(self)))
+    monkeypatch.setattr(StepNFT, "update", lambda self, batch: (_ for _ in ()).throw(Crash()))
+    with pytest.raises(Crash):
+        main(tiny_train_args(tmp_path / "run", demos))
+    assert closed == [1]
 
 
 def test_sft_loss_falls_on_demonstrations(demos):
     torch.manual_seed(0)
     data = demos_to_chunks(load_demos(demos), ["reach-v3"], horizon=4)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=64))
-    policy.set_normalization(data["state"])
+    policy.processor.fit(data["obs"]["state"])
     losses = sft_train(policy, data, SFTConfig(steps=150, batch_size=64, lr=1e-3), torch.Generator().manual_seed(0))
     assert np.mean(losses[-20:]) < 0.7 * np.mean(losses[:20])

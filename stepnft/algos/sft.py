@@ -1,14 +1,19 @@
-"""Few-shot behaviour cloning: the flow-matching SFT loss over demonstration chunks (SPEC §1)."""
+"""Few-shot behaviour cloning: the flow-matching loss over demonstration chunks
+(docs/algorithm.md §1), and the SFT stage of a run (demonstrations -> fitted policy)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from pathlib import Path
+from typing import Callable, Literal
 
+import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
+from tqdm.auto import tqdm
 
 from stepnft.losses import flow_matching_loss
+from stepnft.policies.base import Policy, make_policy
 from stepnft.sampling import flow_matching_pair, sample_flow_time
 
 
@@ -22,31 +27,41 @@ class SFTConfig:
     """Chunks per gradient step."""
     lr: float = 3e-4
     """AdamW learning rate."""
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    """AdamW (beta1, beta2)."""
+    adam_eps: float = 1e-8
+    """AdamW epsilon."""
     weight_decay: float = 1e-4
     """AdamW weight decay."""
-    time_law: str = "uniform"
+    time_law: Literal["uniform", "beta"] = "uniform"
     """Law of the flow time t during training: ``uniform`` or ``beta`` (π0's)."""
 
     def __post_init__(self) -> None:
-        if self.steps < 0 or self.batch_size < 1 or self.lr <= 0:
+        self.adam_betas = tuple(self.adam_betas)
+        if self.steps < 0 or self.batch_size < 1 or not self.lr > 0:
             raise ValueError("sft.steps must be >= 0, sft.batch_size >= 1 and sft.lr > 0")
+        if not (len(self.adam_betas) == 2 and all(0 <= b < 1 for b in self.adam_betas) and self.adam_eps > 0
+                and self.weight_decay >= 0):
+            raise ValueError("sft.adam_betas must be two values in [0, 1), sft.adam_eps > 0 and sft.weight_decay >= 0")
         if self.time_law not in ("uniform", "beta"):
             raise ValueError(f"sft.time_law must be 'uniform' or 'beta', got {self.time_law!r}")
 
 
 def sft_train(
-    policy: nn.Module,
-    data: dict[str, Tensor],
+    policy: Policy,
+    data: dict,
     cfg: SFTConfig,
     generator: torch.Generator | None = None,
     on_step: Callable[[int, float], None] | None = None,
 ) -> list[float]:
     """Fit ``policy`` to demonstration chunks; returns the loss of every step.
 
-    ``data``: ``state`` [N, S], ``lang`` [N, L] (optional), ``actions`` [N, H, A] in [-1, 1],
-    ``mask`` [N, H] (False on positions padded past an episode's end).
+    ``data``: ``obs`` (raw observation dict, ``[N, ...]`` per key), ``actions`` [N, H, A] in
+    [-1, 1], ``mask`` [N, H] (False on positions padded past an episode's end). Observations go
+    through ``policy.processor`` (fit and bound beforehand).
     """
-    optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps,
+                                  weight_decay=cfg.weight_decay)
     n = data["actions"].shape[0]
     losses: list[float] = []
     policy.train()
@@ -56,8 +71,8 @@ def sft_train(
         t = sample_flow_time(len(idx), generator, cfg.time_law)
         noise = torch.randn(actions.shape, generator=generator)
         x_t, v_target = flow_matching_pair(actions, t, noise)
-        lang = data["lang"][idx] if "lang" in data else None
-        loss = flow_matching_loss(policy(data["state"][idx], lang, x_t, t), v_target, data["mask"][idx])
+        obs = policy.processor({k: v[idx] for k, v in data["obs"].items()})
+        loss = flow_matching_loss(policy.velocity(obs, x_t, t), v_target, data["mask"][idx])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -65,3 +80,40 @@ def sft_train(
         if on_step is not None:
             on_step(step, losses[-1])
     return losses
+
+
+def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: list[str], max_episode_steps: int,
+                   seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print) -> Policy:
+    """The SFT stage of a run: demonstrations (generated into ``demos_cfg.path`` if it holds
+    none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`."""
+    from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
+
+    path = Path(demos_cfg.path)
+    if not (path / "manifest.json").is_file():
+        count = max(demos_cfg.count(t) for t in tasks)
+        log(f"generating {count} demonstrations per task into {path}")
+        generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
+                       max_episode_steps=max_episode_steps, simulator=simulator, max_attempts=demos_cfg.max_attempts,
+                       successful_only=demos_cfg.successful_only)
+    keep = (lambda e: e.success) if demos_cfg.successful_only else (lambda e: True)  # noqa: E731
+    episodes = [e for e in load_demos(path) if e.task in tasks and keep(e)]
+    per_task = {t: [e for e in episodes if e.task == t][: demos_cfg.count(t)] for t in tasks}
+    short = [t for t, eps in per_task.items() if len(eps) < demos_cfg.count(t)]
+    if short:
+        raise ValueError(f"demonstrations in {path} have too few {'successful ' * demos_cfg.successful_only}episodes "
+                         f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
+                         "larger N, or point --demos.path at a new folder")
+    data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, policy_cfg.horizon,
+                           only_successful=demos_cfg.successful_only)
+    policy = make_policy(policy_cfg)
+    policy.processor.fit(data["obs"]["state"])
+    policy.processor.bind_instructions([simulator.instruction(t) for t in tasks], cache_dir)
+    gen = torch.Generator().manual_seed(seed)
+    bar = tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0)
+    losses = sft_train(policy, data, sft_cfg, gen,
+                       on_step=lambda s, loss: (bar.update(1), bar.set_postfix(loss=f"{loss:.3f}", refresh=False)))
+    bar.close()
+    if losses:
+        log(f"SFT: {len(data['actions'])} chunks from {sum(len(v) for v in per_task.values())} demos, "
+            f"loss {np.mean(losses[:50]):.3f} -> {np.mean(losses[-50:]):.3f}")
+    return policy

@@ -1,34 +1,42 @@
-"""π-StepNFT update: one forward pass per stored step transition, ranking loss, epochs of
-minibatches (SPEC §4). Rollouts come from the EMA policy; the EMA update is the trainer's
-job (``stepnft.ema``) because it happens once per iteration, after all epochs.
+"""π-StepNFT (docs/algorithm.md §3–5): Flow-SDE rollouts from an EMA copy of the policy, one
+forward pass per recorded denoising step, the step-wise contrastive ranking loss, then the EMA
+update once per iteration. Reads top to bottom: config, sample weights, the update, the class
+the training loop drives.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
 
+from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
+from stepnft.batch import Batch
+from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
+from stepnft.policies.base import Policy
 
 
 @dataclass
-class StepNFTConfig:
+class StepNFTConfig(AlgoConfig):
     """Hyperparameters of π-StepNFT. Defaults are the paper's reference values unless noted;
-    configs/paper.yaml switches every beyond-SPEC option back to the paper's behaviour."""
+    configs/paper.yaml switches every beyond-paper option (docs/algorithm.md §10) off."""
 
+    name: str = "stepnft"
+    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
     noise_level: float = 0.2
     """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
-    record_steps: str = "all"
-    """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond
-    SPEC, ``all`` K of them: K times the training signal for the same simulator steps.
+    record_steps: Literal["one", "all"] = "all"
+    """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond the
+    paper, ``all`` K of them: K times the training signal for the same simulator steps.
     Default ``all``: measured better (docs/experiments.md)."""
-    sde_steps: str = "all"
-    """Which denoising steps of a rollout are stochastic: ``all`` (paper) or, beyond SPEC,
-    ``one``: only the recorded step, the others ODE (as πRL does), so the recorded step's
-    noise is the only exploration of that policy call."""
+    sde_steps: Literal["all", "one"] = "all"
+    """Which denoising steps of a rollout are stochastic: ``all`` (paper) or, beyond the paper,
+    ``one``: only the recorded step, the others ODE (as πRL does). Needs ``record_steps: one``:
+    the ODE steps carry no exploration to learn from."""
     beta: float = 1.0
     """Trust factor β of the mirrored candidates ``v_old ± β Δc``."""
     beta_dpo: float = 1.0
@@ -37,54 +45,43 @@ class StepNFTConfig:
     """Cap on ``||v - v_old||`` per chunk position inside the loss (None: no clip)."""
     kl_beta: float = 1e-4
     """Weight of ``mean((v - v_old)^2)``."""
-    target: str = "next"
+    target: Literal["next", "x0"] = "next"
     """``next``: step-wise target ``x_{t-dt}`` (paper); ``x0``: final-action ablation."""
-    form: str = "rank"
+    form: Literal["rank", "wmse"] = "rank"
     """``rank``: contrastive ranking (paper); ``wmse``: DiffusionNFT weighted-MSE ablation."""
-    lr: float = 1e-4
-    """AdamW learning rate."""
-    weight_decay: float = 0.0
-    """AdamW weight decay."""
-    grad_clip: float = 1.0
-    """Global gradient-norm clip."""
-    update_epochs: int = 2
-    """Passes over each iteration's samples."""
-    minibatch_size: int = 128
-    """Samples per gradient step."""
     ema_base: float = 0.1
     """EMA decay at iteration 0."""
     ema_target: float = 0.995
     """EMA decay at the end of the horizon."""
     ema_horizon: int | None = None
     """Iterations over which the decay rises (None: the run's number of iterations)."""
-    label_balance: str = "global"
-    """Beyond SPEC: ``none`` (paper); ``global``: weight samples so successes and failures
+    eval_ema: bool = False
+    """Evaluate (and save as ``policy/``) the EMA rollout policy instead of the trained one
+    (the reference evaluates the EMA policy)."""
+    label_balance: Literal["none", "global", "task"] = "global"
+    """Beyond the paper: ``none`` (paper); ``global``: weight samples so successes and failures
     carry equal total weight (successful episodes are short, so positives are a minority of
     stored samples); ``task``: the same within each task (a zero-mean signal per task).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
     episode_weighting: bool = True
-    """Beyond SPEC: every episode carries the same total weight, however many policy calls it
-    made (failures run to the step cap and would otherwise dominate the batch: a failing
-    pick-place episode stores ~4x the samples of a successful door-open one). Uses the
-    batch's ``episode`` ids; a batch without them has one sample per episode. Default on:
+    """Beyond the paper: every episode carries the same total weight, however many policy calls
+    it made (failures run to the step cap and would otherwise dominate the batch: a failing
+    pick-place episode stores ~4x the samples of a successful door-open one). Default on:
     measured 0.75 vs 0.65 average success over 3 seeds (docs/experiments.md)."""
     drop_uniform_tasks: bool = False
-    """Beyond SPEC: give weight 0 to the samples of a task whose episodes in this iteration
+    """Beyond the paper: give weight 0 to the samples of a task whose episodes in this iteration
     all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's
-    zero-advantage groups). Needs ``task_id`` in the batch."""
+    zero-advantage groups)."""
     drift_limit: float | None = None
-    """Beyond SPEC: skip the rest of an iteration's updates once a minibatch's mean
+    """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
 
-    def __post_init__(self) -> None:
-        checks = {
+    def check(self) -> dict[str, bool]:
+        return super().check() | {
             "noise_level": self.noise_level >= 0,
             "beta": self.beta > 0,
             "beta_dpo": self.beta_dpo > 0,
-            "lr": self.lr > 0,
-            "update_epochs": self.update_epochs >= 1,
-            "minibatch_size": self.minibatch_size >= 1,
             "ema_base": 0 <= self.ema_base <= 1,
             "ema_target": 0 <= self.ema_target <= 1,
             "target": self.target in ("next", "x0"),
@@ -93,12 +90,15 @@ class StepNFTConfig:
             "sde_steps": self.sde_steps in ("all", "one"),
             "record_steps": self.record_steps in ("one", "all"),
         }
-        bad = [k for k, ok in checks.items() if not ok]
-        if bad:
-            k = bad[0]
-            raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.sde_steps == "one" and self.record_steps == "all":
+            raise ValueError("algo.sde_steps=one needs algo.record_steps=one: with one stochastic step per call the "
+                             "other recorded steps are deterministic ODE steps with nothing to rank")
 
 
+# --- sample weights ---------------------------------------------------------------------------
 def label_weights(y: Tensor, group: Tensor | None = None, base: Tensor | None = None) -> Tensor:
     """Per-sample weights ``[B]`` giving successes and failures equal total weight within each
     group (``group`` [B] ints, e.g. task ids; None: one group), rescaling ``base`` weights
@@ -134,40 +134,45 @@ def informative_mask(y: Tensor, group: Tensor) -> Tensor:
     return keep
 
 
+def sample_weights(batch: Batch, y: Tensor, cfg: StepNFTConfig) -> Tensor | None:
+    """``[N]`` weights of the recorded steps from the options above (None: uniform)."""
+    weights = episode_weights(batch.step_episode) if cfg.episode_weighting else None
+    if cfg.label_balance != "none":
+        weights = label_weights(y, batch.step_task if cfg.label_balance == "task" else None, weights)
+    if cfg.drop_uniform_tasks:
+        weights = torch.ones(len(y)) if weights is None else weights
+        weights = weights * informative_mask(y, batch.step_task).float()
+    return weights
+
+
+# --- the update -------------------------------------------------------------------------------
 def stepnft_update(
-    policy: nn.Module,
+    policy: Policy,
     optimizer: torch.optim.Optimizer,
-    batch: dict[str, Tensor],
+    batch: Batch,
     cfg: StepNFTConfig,
     generator: torch.Generator | None = None,
 ) -> dict[str, float]:
-    """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps on ``batch``.
-
-    ``batch`` keys (``N`` stored transitions): ``state`` [N, S], ``lang`` [N, L] (optional),
-    ``x_t``, ``x_next``, ``v_old``, ``actions`` [N, H, A], ``t``, ``dt`` [N], ``y`` [N] in
-    {+1, -1}, ``mask`` [N, H], ``task_id`` [N] (optional, for ``label_balance="task"``),
-    ``episode`` [N] (optional, for ``episode_weighting``).
-    Returns metrics averaged over minibatch steps.
-    """
-    n = batch["y"].shape[0]
-    weights = episode_weights(batch["episode"]) if cfg.episode_weighting and "episode" in batch else None
-    if cfg.label_balance != "none":
-        weights = label_weights(batch["y"], batch.get("task_id") if cfg.label_balance == "task" else None, weights)
-    if cfg.drop_uniform_tasks:
-        weights = torch.ones(n) if weights is None else weights
-        weights = weights * informative_mask(batch["y"], batch["task_id"]).float()
+    """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
+    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary).
+    Returns metrics averaged over minibatch steps, under stable names."""
+    y = batch.step_success.float() * 2 - 1
+    weights = sample_weights(batch, y, cfg)
     sums: dict[str, float] = defaultdict(float)
-    seen = steps = 0
+    seen = steps = skipped = 0
     stopped = False
     for _ in range(cfg.update_epochs):
-        for idx in torch.randperm(n, generator=generator).split(cfg.minibatch_size):
-            mb = {k: v[idx] for k, v in batch.items()}
-            v = policy(mb["state"], mb.get("lang"), mb["x_t"], mb["t"])
+        for idx in torch.randperm(batch.num_steps, generator=generator).split(cfg.minibatch_size):
+            w = None if weights is None else weights[idx]
+            if w is not None and not bool(w.sum() > 0):
+                skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
+                continue
+            v = policy.velocity(policy.processor(batch.steps_obs(idx)), batch.x_t[idx], batch.t[idx])
             loss, metrics = stepnft_loss(
-                v, mb["v_old"], mb["x_t"], mb["x_next"], mb["t"], mb["dt"], cfg.noise_level, mb["y"],
-                beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,
-                mask=mb["mask"], target=cfg.target, form=cfg.form, actions=mb["actions"],
-                weight=None if weights is None else weights[idx],
+                v, batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], cfg.noise_level,
+                y[idx], beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,
+                mask=batch.mask[batch.call[idx]], target=cfg.target, form=cfg.form, actions=batch.actions[batch.call[idx]],
+                weight=w,
             )
             for k, val in metrics.items():
                 sums[k] += val
@@ -184,8 +189,50 @@ def stepnft_update(
             steps += 1
         if stopped:
             break
-    out = {k: v / max(seen, 1) for k, v in sums.items()}
-    out["grad_norm"] = sums["grad_norm"] / max(steps, 1)
-    out["update_steps"] = float(steps)
-    out["drift_stopped"] = float(stopped)
+    means = {k: v / max(seen, 1) for k, v in sums.items()}
+    means["grad_norm"] = sums["grad_norm"] / max(steps, 1)
+    out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
+    out |= {f"losses/{k}": v for k, v in means.items()}
+    out |= {"losses/update_steps": float(steps), "losses/drift_stopped": float(stopped),
+            "losses/skipped_empty": float(skipped)}
     return out
+
+
+# --- the algorithm ----------------------------------------------------------------------------
+class StepNFT(Algorithm):
+    """π-StepNFT: the EMA copy acts (Flow-SDE), the policy learns, the EMA follows."""
+
+    name = "stepnft"
+    config_class = StepNFTConfig
+
+    def __init__(self, policy: Policy, cfg: StepNFTConfig, iterations: int, generator: torch.Generator):
+        super().__init__(policy, cfg, iterations, generator)
+        self.ema = make_ema_copy(policy)
+        self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.ema_horizon = cfg.ema_horizon or iterations
+
+    @property
+    def rollout(self) -> RolloutSpec:
+        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps)
+
+    def acting_policy(self) -> Policy:
+        return self.ema.eval()
+
+    def eval_policy(self) -> Policy:
+        return self.ema if self.cfg.eval_ema else self.policy
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        self.policy.train()
+        return stepnft_update(self.policy, self.optimizer, batch, self.cfg, self.generator)
+
+    def end_iteration(self, iteration: int) -> dict[str, float]:
+        decay = ema_decay(iteration, self.ema_horizon, self.cfg.ema_base, self.cfg.ema_target)
+        ema_update(self.ema, self.policy, decay)
+        return {"charts/ema_decay": decay}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.ema.load_state_dict(state["ema"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -1,4 +1,4 @@
-"""Scripted-expert demonstrations for MetaWorld: generation, on-disk format, loading, SFT chunks.
+"""Scripted-expert demonstrations: generation, on-disk format, loading, SFT chunks.
 
 On-disk format, version 1 (a public contract; bump "version" when it changes):
 
@@ -10,48 +10,45 @@ On-disk format, version 1 (a public contract; bump "version" when it changes):
                        "success": bool, "length": T, "seed": int}, ...],
          "generator": {...}}                                    # arguments, for provenance
     out_dir/<task>/episode_<k>.npz, one per episode, with
-        observations  float32 [T+1, 39]  o_0 .. o_T (o_T is the state after the last action)
-        actions       float32 [T, 4]     what was executed: expert action + noise, clipped
+        observations  float32 [T+1, S]   states o_0 .. o_T (o_T is the state after the last action)
+        actions       float32 [T, A]     what was executed: expert action + noise, clipped
         rewards       float32 [T]
         successes     bool    [T]        success reached by step t (the episode stops at
                                          the first success, so only the last can be True)
 
-Files are written to a temporary name and renamed, and the manifest last, so a crash never
-leaves a half-written file behind a valid manifest.
+``generator`` also names the ``simulator`` (``metaworld`` when absent) and its ``state_dim`` and
+``action_dim`` (MetaWorld's 39 and 4 when absent). Files are written to a temporary name and
+renamed, and the manifest last, so a crash never leaves a half-written file behind a valid
+manifest.
 
-Seeds. Episode k of a task starts from `MetaWorldChunkEnv.reset(seed=demo_seed(seed, k))`,
-i.e. 2**32 + seed * 2**20 + k. Evaluation uses small seeds and the vector env's sub-env
-streams are seeded below 2**32, so demo initial states never coincide with theirs.
+Generation keeps drawing initial states until it has ``episodes`` successful demonstrations per
+task (scripted experts miss some episodes on harder tasks), at most ``max_attempts`` per task;
+failed attempts are discarded and counted in the manifest (``generator.discarded``).
+
+Seeds. Attempt k of a task starts from `reset(seed=demo_seed(seed, k))`, i.e.
+2**32 + seed * 2**20 + k. Evaluation uses small seeds and the vector env's sub-env streams are
+seeded below 2**32, so demo initial states never coincide with theirs.
 """
 
 import dataclasses
-import io
 import json
-import os
-import tempfile
-import warnings
+import zipfile
 from collections.abc import Sequence
-from importlib.metadata import version
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
 import torch
-from metaworld.policies import ENV_POLICY_MAP
 from tqdm import tqdm
 
-from stepnft.envs.instructions import instruction_for
-from stepnft.envs.metaworld import (
-    ACTION_DIM,
-    OBS_DIM,
-    TASK_NAMES,
-    MetaWorldChunkEnv,
-    validate_tasks,
-)
+from stepnft.envs import get_simulator
+from stepnft.runs import write_atomic
 
 FORMAT = "stepnft-demos"
 VERSION = 1
 DEMO_SEED_OFFSET = 2**32
 MAX_EPISODES_PER_TASK = 2**20
+METAWORLD_DIMS = (39, 4)
 
 
 @dataclasses.dataclass
@@ -61,9 +58,9 @@ class DemoEpisode:
     task: str
     instruction: str
     observations: np.ndarray
-    """float32 [T+1, 39]"""
+    """float32 [T+1, S]"""
     actions: np.ndarray
-    """float32 [T, 4]"""
+    """float32 [T, A]"""
     rewards: np.ndarray
     """float32 [T]"""
     successes: np.ndarray
@@ -73,7 +70,7 @@ class DemoEpisode:
 
 
 def demo_seed(seed: int, episode: int) -> int:
-    """The reset seed of demo `episode` of every task in a run with `seed`."""
+    """The reset seed of demo attempt `episode` of every task in a run with `seed`."""
     return DEMO_SEED_OFFSET + seed * MAX_EPISODES_PER_TASK + episode
 
 
@@ -85,100 +82,110 @@ def generate_demos(
     action_noise: float = 0.0,
     max_episode_steps: int = 200,
     progress: bool = True,
+    simulator="metaworld",
+    max_attempts: int | None = None,
+    successful_only: bool = True,
 ) -> Path:
-    """Runs MetaWorld's scripted expert for `episodes` episodes per task; returns `out_dir`.
+    """Runs the simulator's scripted expert until it has `episodes` successful episodes per
+    task (at most `max_attempts` attempts per task, default 5 x `episodes`); returns `out_dir`.
+    With `successful_only=False` it keeps the first `episodes` attempts, failed or not.
 
     Episodes end at the first success or after `max_episode_steps` steps. Gaussian noise of
     std `action_noise` is added to each expert action before clipping to [-1, 1].
+    `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`.
     """
-    tasks = validate_tasks(tasks)
+    sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
+    tasks = sim.validate_tasks(tasks)
     if not 1 <= episodes <= MAX_EPISODES_PER_TASK:
         raise ValueError(f"episodes must be in [1, {MAX_EPISODES_PER_TASK}], got {episodes}")
+    max_attempts = 5 * episodes if max_attempts is None else max_attempts
+    if not episodes <= max_attempts <= MAX_EPISODES_PER_TASK:
+        raise ValueError(f"max_attempts must be in [episodes, {MAX_EPISODES_PER_TASK}], got {max_attempts}")
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
-    if action_noise < 0:
-        raise ValueError(f"action_noise must be >= 0, got {action_noise}")
+    if not action_noise >= 0 or not np.isfinite(action_noise):
+        raise ValueError(f"action_noise must be a finite number >= 0, got {action_noise}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    entries = []
-    bar = tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress)
+    entries, discarded = [], {}
+    bar = tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0)
     for task in tasks:
-        env = MetaWorldChunkEnv(task, n_exec=1, max_episode_steps=max_episode_steps)
-        expert = ENV_POLICY_MAP[task]()
+        env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps)
+        expert = sim.expert(task, seed)
         # A noise stream per (seed, task), unaffected by which other tasks are generated.
-        noise_rng = np.random.default_rng([seed, TASK_NAMES.index(task)])
+        noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
         (out_dir / task).mkdir(exist_ok=True)
-        n_success = 0
-        for k in range(episodes):
-            episode = _run_expert(env, expert, noise_rng, action_noise, demo_seed(seed, k))
-            file = f"{task}/episode_{k:04d}.npz"
-            buffer = io.BytesIO()
-            np.savez(
-                buffer,
-                observations=episode.observations,
-                actions=episode.actions,
-                rewards=episode.rewards,
-                successes=episode.successes,
-            )
-            _write_atomic(out_dir / file, buffer.getvalue())
-            entries.append(
-                {
-                    "file": file,
-                    "task": task,
-                    "instruction": episode.instruction,
-                    "success": episode.success,
-                    "length": len(episode.actions),
-                    "seed": episode.seed,
-                }
-            )
-            n_success += episode.success
+        kept = attempts = 0
+        while kept < episodes:
+            if attempts == max_attempts:
+                env.close()
+                raise ValueError(f"the {sim.label} expert succeeded on only {kept} of {attempts} attempts at {task} "
+                                 f"(cap {max_attempts}): ask for fewer episodes or raise the attempt cap")
+            episode = _run_expert(env, sim.instruction(task), expert, noise_rng, action_noise,
+                                  demo_seed(seed, attempts), task)
+            attempts += 1
+            if successful_only and not episode.success:
+                continue
+            file = f"{task}/episode_{kept:04d}.npz"
+            write_atomic(out_dir / file, _npz_bytes(episode))
+            entries.append({"file": file, "task": task, "instruction": episode.instruction, "success": episode.success,
+                            "length": len(episode.actions), "seed": episode.seed})
+            kept += 1
             bar.update()
-            bar.set_postfix(task=task, success_rate=f"{n_success / (k + 1):.2f}")
+            bar.set_postfix(task=task, discarded=attempts - kept)
+        discarded[task] = attempts - kept
         env.close()
     bar.close()
 
+    try:
+        package_version = version(sim.name)
+    except PackageNotFoundError:
+        package_version = None
     manifest = {
         "format": FORMAT,
         "version": VERSION,
         "tasks": tasks,
         "episodes": entries,
         "generator": {
-            "episodes_per_task": episodes,
-            "seed": seed,
-            "action_noise": action_noise,
-            "max_episode_steps": max_episode_steps,
-            "expert": "metaworld.policies.ENV_POLICY_MAP",
-            "metaworld_version": version("metaworld"),
+            "simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,
+            "episodes_per_task": episodes, "max_attempts": max_attempts, "discarded": discarded,
+            "seed": seed, "action_noise": action_noise, "max_episode_steps": max_episode_steps,
+            "expert": f"{sim.name} scripted expert", "simulator_version": package_version,
         },
     }
-    _write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1).encode())
+    write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1))
     return out_dir
 
 
-def _run_expert(
-    env: MetaWorldChunkEnv, expert, noise_rng: np.random.Generator, action_noise: float, seed: int
-) -> DemoEpisode:
+def _npz_bytes(episode: DemoEpisode) -> bytes:
+    import io
+
+    buffer = io.BytesIO()
+    np.savez(buffer, observations=episode.observations, actions=episode.actions, rewards=episode.rewards,
+             successes=episode.successes)
+    return buffer.getvalue()
+
+
+def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, action_noise: float, seed: int,
+                task: str) -> DemoEpisode:
     obs, _ = env.reset(seed=seed)
-    observations, actions, rewards, successes = [obs], [], [], []
+    observations, actions, rewards, successes = [obs["state"]], [], [], []
     done = False
     while not done:
-        with warnings.catch_warnings():
-            # The experts warn when their gains saturate an action; we clip it anyway.
-            warnings.filterwarnings("ignore", "Constant", UserWarning)
-            action = expert.get_action(obs)
+        action = np.asarray(expert.act(obs), dtype=np.float64)
         if action_noise > 0:
-            action = action + noise_rng.normal(0.0, action_noise, size=ACTION_DIM)
+            action = action + noise_rng.normal(0.0, action_noise, size=action.shape)
         action = np.clip(action, -1.0, 1.0).astype(np.float32)
         obs, reward, terminated, truncated, info = env.step(action[None])
-        observations.append(obs)
+        observations.append(obs["state"])
         actions.append(action)
         rewards.append(reward)
         successes.append(info["success"])
         done = terminated or truncated
     return DemoEpisode(
-        task=env.task,
-        instruction=env.instruction,
+        task=task,
+        instruction=instruction,
         observations=np.stack(observations).astype(np.float32),
         actions=np.stack(actions),
         rewards=np.asarray(rewards, dtype=np.float32),
@@ -188,44 +195,34 @@ def _run_expert(
     )
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Writes `data` to a temporary file next to `path`, then renames it to `path`."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def load_demos(path: str | Path) -> list[DemoEpisode]:
     """Loads every episode listed in `path/manifest.json`, in manifest order."""
     path = Path(path)
     manifest_path = path / "manifest.json"
     if not manifest_path.is_file():
         raise FileNotFoundError(
-            f"no demonstrations at {path}: run `stepnft demos --out {path}` first"
+            f"no demonstrations at {path}: run `stepnft demos --demos.path {path}` first"
         )
-    regenerate = f"run `stepnft demos --out {path}` to regenerate them"
+    regenerate = f"run `stepnft demos --demos.path {path}` to regenerate them"
     try:
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
             raise ValueError(f"expected format {FORMAT!r} version {VERSION}")
-        return [_load_episode(path, entry) for entry in manifest["episodes"]]
+        generator = manifest.get("generator", {})
+        dims = (generator.get("state_dim", METAWORLD_DIMS[0]), generator.get("action_dim", METAWORLD_DIMS[1]))
+        return [_load_episode(path, entry, dims) for entry in manifest["episodes"]]
     except FileNotFoundError as e:
         raise FileNotFoundError(
             f"demonstrations at {path} are incomplete ({e}); {regenerate}"
         ) from None
-    except (ValueError, KeyError, TypeError, AttributeError, OSError) as e:
-        # Bad JSON is a ValueError; a damaged .npz raises ValueError, OSError or KeyError.
+    except (ValueError, KeyError, TypeError, AttributeError, OSError, EOFError, zipfile.BadZipFile) as e:
+        # Bad JSON is a ValueError; a damaged or truncated .npz raises any of the others.
         raise ValueError(
             f"corrupt demonstrations at {path} ({type(e).__name__}: {e}); {regenerate}"
         ) from None
 
 
-def _load_episode(root: Path, entry: dict) -> DemoEpisode:
+def _load_episode(root: Path, entry: dict, dims: tuple[int, int]) -> DemoEpisode:
     file = root / entry["file"]
     if not file.is_file():
         raise FileNotFoundError(f"missing {entry['file']}")
@@ -233,8 +230,8 @@ def _load_episode(root: Path, entry: dict) -> DemoEpisode:
         arrays = {key: data[key] for key in ("observations", "actions", "rewards", "successes")}
     length = entry["length"]
     expected = {
-        "observations": (length + 1, OBS_DIM),
-        "actions": (length, ACTION_DIM),
+        "observations": (length + 1, dims[0]),
+        "actions": (length, dims[1]),
         "rewards": (length,),
         "successes": (length,),
     }
@@ -264,9 +261,9 @@ def demos_to_chunks(
     """The SFT dataset: one sample per time step t of every (successful) episode.
 
     Returns N samples:
-        state    float32 [N, 39]    observations[t]
-        task_id  int64   [N]        index of the episode's task in `tasks`
-        actions  float32 [N, H, 4]  actions[t : t+H], past the episode's end repeating its
+        obs      {"state": float32 [N, S] observations[t],
+                  "task": int64 [N] index of the episode's task in `tasks`}
+        actions  float32 [N, H, A]  actions[t : t+H], past the episode's end repeating its
                                     last action
         mask     bool    [N, H]     False on those repeated (padded) positions
     """
@@ -290,8 +287,8 @@ def demos_to_chunks(
         kind = "successful " if only_successful else ""
         raise ValueError(f"no {kind}demonstrations to build chunks from")
     return {
-        "state": torch.from_numpy(np.concatenate(states).astype(np.float32)),
-        "task_id": torch.from_numpy(np.concatenate(task_ids)),
+        "obs": {"state": torch.from_numpy(np.concatenate(states).astype(np.float32)),
+                "task": torch.from_numpy(np.concatenate(task_ids))},
         "actions": torch.from_numpy(np.concatenate(chunks).astype(np.float32)),
         "mask": torch.from_numpy(np.concatenate(masks)),
     }

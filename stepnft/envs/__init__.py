@@ -1,4 +1,48 @@
-"""Simulator adapters. Kept import-light: the CLI reads DEFAULT_TASKS without loading MuJoCo."""
+"""Simulators behind one interface (``stepnft.envs.base``).
+
+This module stays import-light (no MuJoCo): the config and the CLI read the registry below to
+check names and limits. ``get_simulator(name)`` imports a simulator's module on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SimulatorInfo:
+    """What the config needs to know about a simulator before importing it."""
+
+    target: str
+    """``module:Class`` of its :class:`stepnft.envs.base.Simulator`."""
+    max_episode_steps: int
+    """The longest episode the simulator allows."""
+    default_tasks: tuple[str, ...]
+    """Tasks used when a config names none."""
+
 
 DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
 """The embedded default: five MetaWorld v3 tasks, one multi-task policy."""
+
+SIMULATORS: dict[str, SimulatorInfo] = {
+    "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
+    "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",)),
+}
+"""Registered simulators by config name (``env.name``). A new simulator adds one line here."""
+
+
+def get_simulator(name: str):
+    """The :class:`~stepnft.envs.base.Simulator` registered as ``name``."""
+    if name not in SIMULATORS:
+        raise ValueError(f"unknown simulator {name!r}; choose one of: {', '.join(SIMULATORS)}")
+    module, cls = SIMULATORS[name].target.split(":")
+    return getattr(importlib.import_module(module), cls)()
+
+
+def make_vec_env(env_cfg, n_exec: int, seed: int):
+    """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
+    ``n_exec`` actions; sub-env streams seeded from ``seed``."""
+    return get_simulator(env_cfg.name).make_vec_env(
+        env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
+        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers)

@@ -1,8 +1,38 @@
+"""π-StepNFT's update on a hand-built batch: weights, epochs, direction, and what each
+ablation switch changes."""
+
+import dataclasses
+
 import pytest
 import torch
 
-from stepnft.algos.stepnft import StepNFTConfig, label_weights, stepnft_update
+from stepnft.algos.base import make_algorithm
+from stepnft.algos.stepnft import StepNFT, StepNFTConfig, episode_weights, informative_mask, label_weights, stepnft_update
+from stepnft.batch import Batch
+from stepnft.losses import stepnft_loss
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+
+
+def make_batch(n=256, seed=0, noise_level=0.3, record_all=False):
+    """One policy call per episode; an episode succeeds when its chunk's first coordinate is > 0."""
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    policy = FlowPolicy(FlowPolicyConfig(state_dim=3, lang_dim=0, action_dim=2, horizon=2, n_exec=2, hidden_dim=32))
+    state = torch.randn(n, 3, generator=g)
+    obs = {"state": state, "task": torch.arange(n) % 2}
+    sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=g, keep_path=record_all)
+    if record_all:
+        steps = sample.all_steps()
+        steps["call"] = steps.pop("sample")
+    else:
+        steps = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t, "dt": sample.dt,
+                 "call": torch.arange(n)}
+    batch = Batch(
+        episode_success=sample.actions[:, 0, 0] > 0, episode_task=obs["task"].clone(),
+        episode_length=torch.full((n,), 2), episode_seed=torch.full((n,), -1), obs=obs, actions=sample.actions,
+        mask=torch.ones(n, 2, dtype=torch.bool), reward=torch.zeros(n), done=torch.ones(n, dtype=torch.bool),
+        episode=torch.arange(n), **steps)
+    return policy, batch
 
 
 def test_label_weights_global_and_per_task():
@@ -22,53 +52,131 @@ def test_invalid_config_is_a_clear_error():
         StepNFTConfig(label_balance="yes")
     with pytest.raises(ValueError, match="algo.lr"):
         StepNFTConfig(lr=-1.0)
-
-
-def _batch(n=256, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    policy = FlowPolicy(FlowPolicyConfig(state_dim=3, lang_dim=0, action_dim=2, horizon=2, n_exec=2, hidden_dim=32))
-    state = torch.randn(n, 3, generator=g)
-    sample = policy.sample(state, noise_level=0.3, generator=g)
-    y = (sample.actions[:, 0, 0] > 0).float() * 2 - 1
-    batch = {"state": state, "x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old,
-             "actions": sample.actions, "t": sample.t, "dt": sample.dt, "y": y,
-             "mask": torch.ones(n, 2, dtype=torch.bool)}
-    return policy, batch
+    with pytest.raises(ValueError, match="algo.adam_betas"):
+        StepNFTConfig(adam_betas=(0.9, 1.5))
+    with pytest.raises(ValueError, match="sde_steps=one needs algo.record_steps=one"):
+        StepNFTConfig(sde_steps="one", record_steps="all")
+    StepNFTConfig(sde_steps="one", record_steps="one")
 
 
 def test_update_runs_epochs_and_moves_toward_successes():
-    policy, batch = _batch()
+    policy, batch = make_batch()
     cfg = StepNFTConfig(noise_level=0.3, lr=1e-3, update_epochs=3, minibatch_size=64)
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
-    before = policy.sample(batch["state"], generator=torch.Generator().manual_seed(5)).actions[:, 0, 0].mean()
+    obs = policy.processor(batch.obs)
+    before = policy.sample(obs, generator=torch.Generator().manual_seed(5)).actions[:, 0, 0].mean()
     metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
-    assert metrics["update_steps"] == 12 and metrics["drift_stopped"] == 0.0
-    after = policy.sample(batch["state"], generator=torch.Generator().manual_seed(5)).actions[:, 0, 0].mean()
+    assert metrics["losses/update_steps"] == 12 and metrics["losses/drift_stopped"] == 0.0
+    assert 0 < metrics["charts/pos_sample_frac"] < 1
+    after = policy.sample(obs, generator=torch.Generator().manual_seed(5)).actions[:, 0, 0].mean()
     assert after > before  # successes were the chunks with a positive first coordinate
 
 
 def test_drift_limit_stops_epochs_early():
-    policy, batch = _batch()
+    policy, batch = make_batch()
     cfg = StepNFTConfig(noise_level=0.3, lr=1e-2, update_epochs=20, minibatch_size=64, drift_limit=0.05)
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
     metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
-    assert metrics["drift_stopped"] == 1.0 and metrics["update_steps"] < 80
+    assert metrics["losses/drift_stopped"] == 1.0 and metrics["losses/update_steps"] < 80
 
 
 def test_informative_mask_drops_single_label_tasks():
-    from stepnft.algos.stepnft import informative_mask
-
     y = torch.tensor([1.0, -1, 1, 1, -1, -1])
     task = torch.tensor([0, 0, 1, 1, 2, 2])
     assert informative_mask(y, task).tolist() == [True, True, False, False, False, False]
 
 
-def test_episode_weights_equalise_episodes_and_combine_with_balance():
-    from stepnft.algos.stepnft import episode_weights
+def test_minibatches_with_no_weight_take_no_optimizer_step():
+    """With every task uniform, drop_uniform_tasks zeroes every weight: no Adam step may move
+    the policy (zero gradients still would, through the optimizer's momentum)."""
+    policy, batch = make_batch(n=64)
+    batch.episode_success[:] = True
+    cfg = StepNFTConfig(noise_level=0.3, lr=1e-2, minibatch_size=16, drop_uniform_tasks=True)
+    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
+    before = [p.clone() for p in policy.parameters()]
+    metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
+    assert metrics["losses/update_steps"] == 0 and metrics["losses/skipped_empty"] == 8
+    assert all(torch.equal(a, b) for a, b in zip(before, policy.parameters()))
 
+
+def test_episode_weights_equalise_episodes_and_combine_with_balance():
     episode = torch.tensor([0, 0, 0, 1])  # a 3-call episode and a 1-call episode
     w = episode_weights(episode)
     assert w[:3].sum().item() == pytest.approx(w[3].item()) and w.mean().item() == pytest.approx(1.0)
     y = torch.tensor([-1.0, -1, -1, 1])
     balanced = label_weights(y, base=w)
     assert balanced[y > 0].sum().item() == pytest.approx(balanced[y < 0].sum().item())
+
+
+def first_minibatch_metrics(cfg: StepNFTConfig, record_all=False) -> dict:
+    """The loss terms of the first minibatch (no step taken before it), on the same batch."""
+    policy, batch = make_batch(noise_level=cfg.noise_level, record_all=record_all)
+    with torch.no_grad():  # move the policy off v_old so Δ is not zero
+        for p in policy.parameters():
+            p.add_(0.01 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    opt = torch.optim.SGD(policy.parameters(), lr=0.0)
+    return stepnft_update(policy, opt, batch, dataclasses.replace(cfg, update_epochs=1, minibatch_size=10_000))
+
+
+BASE = StepNFTConfig(noise_level=0.3, label_balance="none", episode_weighting=False)
+
+
+def test_ablation_switches_change_what_they_should():
+    base = first_minibatch_metrics(BASE)
+    assert base["losses/E_pos"] != base["losses/E_neg"]
+
+    # β = 2 doubles the mirrored candidates' offset: E+ - E- is linear in β (docs/algorithm.md §4).
+    beta2 = first_minibatch_metrics(dataclasses.replace(BASE, beta=2.0))
+    assert beta2["losses/E_diff_signed"] == pytest.approx(2 * base["losses/E_diff_signed"], rel=1e-4)
+    assert beta2["losses/delta_v_norm"] == pytest.approx(base["losses/delta_v_norm"])
+
+    # x0 target: energies against the executed chunk instead of x_next (other values, same Δ).
+    x0 = first_minibatch_metrics(dataclasses.replace(BASE, target="x0"))
+    assert x0["losses/E_pos"] != pytest.approx(base["losses/E_pos"], rel=1e-3)
+    assert x0["losses/delta_v_norm"] == pytest.approx(base["losses/delta_v_norm"])
+
+    # Weighted MSE: the main term is r E+ + (1 - r) E- (≈ the energies, as the candidates are
+    # close), not a softplus near ln 2.
+    wmse = first_minibatch_metrics(dataclasses.replace(BASE, form="wmse"))
+    assert wmse["losses/E_pos"] == pytest.approx(base["losses/E_pos"])
+    assert base["losses/loss_main"] == pytest.approx(0.6931, abs=0.01)
+    assert wmse["losses/loss_main"] == pytest.approx(0.5 * (base["losses/E_pos"] + base["losses/E_neg"]), rel=0.01)
+
+    # ODE exploration (a = 0): the recorded step is deterministic, so the candidates tie.
+    ode = first_minibatch_metrics(dataclasses.replace(BASE, noise_level=0.0))
+    assert ode["losses/E_diff_signed"] == pytest.approx(0.0, abs=1e-3 * abs(base["losses/E_diff_signed"]))
+
+    # Label balance: successes and failures then carry equal weight, so the loss changes.
+    balanced = first_minibatch_metrics(dataclasses.replace(BASE, label_balance="global"))
+    assert balanced["losses/loss_main"] != pytest.approx(base["losses/loss_main"], rel=1e-6)
+
+    # Recording all K steps: K samples per call, same policy calls.
+    every = first_minibatch_metrics(dataclasses.replace(BASE, record_steps="all"), record_all=True)
+    assert every["losses/E_pos"] != base["losses/E_pos"]
+
+
+def test_the_loss_sees_exactly_the_weighted_batch():
+    """Cross-check: the update's first-minibatch loss equals stepnft_loss on the whole batch."""
+    policy, batch = make_batch(n=32)
+    cfg = dataclasses.replace(BASE, update_epochs=1, minibatch_size=32)
+    y = batch.step_success.float() * 2 - 1
+    v = policy.velocity(policy.processor(batch.obs), batch.x_t, batch.t)
+    expected, _ = stepnft_loss(v, batch.v_old, batch.x_t, batch.x_next, batch.t, batch.dt, cfg.noise_level, y)
+    metrics = stepnft_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, cfg)
+    assert metrics["losses/loss"] == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_the_algorithm_owns_ema_optimizer_and_their_state():
+    policy, batch = make_batch(n=64)
+    algo = make_algorithm(StepNFTConfig(noise_level=0.3, lr=1e-2), policy, iterations=10,
+                          generator=torch.Generator().manual_seed(0))
+    assert isinstance(algo, StepNFT) and algo.acting_policy() is algo.ema and algo.eval_policy() is policy
+    assert algo.ema.processor is policy.processor  # input processing is shared, not copied
+    assert algo.rollout.noise_level == 0.3 and algo.rollout.record_steps == "all"
+    algo.update(batch)
+    assert algo.end_iteration(0) == {"charts/ema_decay": pytest.approx(0.1)}
+    state = algo.state_dict()
+    other = make_algorithm(StepNFTConfig(noise_level=0.3, lr=1e-2), make_batch(n=64)[0], 10, torch.Generator())
+    other.load_state_dict(state)
+    assert all(torch.equal(a, b) for a, b in zip(other.ema.state_dict().values(), algo.ema.state_dict().values()))
+    assert other.optimizer.state_dict()["state"].keys() == algo.optimizer.state_dict()["state"].keys()

@@ -12,8 +12,7 @@ from stepnft.data.demos import (
     generate_demos,
     load_demos,
 )
-from stepnft.envs.instructions import instruction_for
-from stepnft.envs.metaworld import MetaWorldChunkEnv
+from stepnft.envs.metaworld import MetaWorldChunkEnv, instruction_for
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +25,8 @@ def test_demos_round_trip_through_disk(reach_demos):
     manifest = json.loads((reach_demos / "manifest.json").read_text())
     assert manifest["format"] == "stepnft-demos" and manifest["version"] == 1
     assert manifest["tasks"] == ["reach-v3"]
-    assert manifest["generator"]["episodes_per_task"] == 2
+    assert manifest["generator"]["episodes_per_task"] == 2 and manifest["generator"]["simulator"] == "metaworld"
+    assert manifest["generator"]["discarded"] == {"reach-v3": 0}
     assert [entry["file"] for entry in manifest["episodes"]] == [
         "reach-v3/episode_0000.npz",
         "reach-v3/episode_0001.npz",
@@ -59,10 +59,10 @@ def test_expert_demos_succeed_and_replay_exactly(reach_demos):
         assert np.abs(episode.actions).max() <= 1.0
         env = MetaWorldChunkEnv(episode.task, n_exec=1)
         obs, _ = env.reset(seed=episode.seed)
-        np.testing.assert_array_equal(obs, episode.observations[0])
+        np.testing.assert_array_equal(obs["state"], episode.observations[0])
         for t, action in enumerate(episode.actions):
             obs, reward, *_ = env.step(action[None])
-            np.testing.assert_array_equal(obs, episode.observations[t + 1])
+            np.testing.assert_array_equal(obs["state"], episode.observations[t + 1])
             assert reward == pytest.approx(episode.rewards[t])
 
 
@@ -70,7 +70,7 @@ def test_noisy_generation_is_reproducible_from_its_seed(tmp_path):
     def first_actions(seed, name):
         out = generate_demos(
             "reach-v3", 1, tmp_path / name, seed=seed, action_noise=0.3, max_episode_steps=20,
-            progress=False,
+            progress=False, successful_only=False,
         )
         return load_demos(out)[0].actions
 
@@ -79,6 +79,25 @@ def test_noisy_generation_is_reproducible_from_its_seed(tmp_path):
     assert not np.array_equal(same_a, other)
     # The expert saturates its actions, so noise pushes many past the bounds: stored clipped.
     assert np.abs(same_a).max() == 1.0
+
+
+def test_a_missing_expert_draws_more_states_until_n_successes(tmp_path):
+    """Heavy action noise makes the expert miss: generation keeps drawing initial states,
+    discards the failures, counts them, and gives up at the attempt cap."""
+    out = generate_demos("reach-v3", 2, tmp_path / "noisy", action_noise=1.0, max_episode_steps=60, progress=False,
+                         max_attempts=100)
+    manifest = json.loads((out / "manifest.json").read_text())
+    episodes = load_demos(out)
+    assert len(episodes) == 2 and all(e.success for e in episodes)
+    discarded = manifest["generator"]["discarded"]["reach-v3"]
+    assert discarded > 0
+    # The kept episodes are the successful attempts, numbered by their attempt's seed.
+    assert sorted(e.seed for e in episodes)[-1] == demo_seed(0, discarded + 1)
+    assert sorted(p.name for p in (out / "reach-v3").iterdir()) == ["episode_0000.npz", "episode_0001.npz"]
+
+    with pytest.raises(ValueError, match=r"succeeded on only \d of 3 attempts at reach-v3 \(cap 3\)"):
+        generate_demos("reach-v3", 3, tmp_path / "capped", action_noise=3.0, max_episode_steps=30, progress=False,
+                       max_attempts=3)
 
 
 def make_episode(task, actions, success=True):
@@ -105,10 +124,10 @@ def test_chunks_repeat_the_last_action_past_the_end_and_mask_it():
     failed = make_episode("reach-v3", [[9.0] * 4, [8.0] * 4], success=False)
     data = demos_to_chunks([pushed, failed], tasks=["reach-v3", "push-v3"], horizon=4)
 
-    assert data["state"].dtype == torch.float32 and data["actions"].dtype == torch.float32
-    assert data["task_id"].dtype == torch.int64 and data["mask"].dtype == torch.bool
-    torch.testing.assert_close(data["state"], torch.from_numpy(pushed.observations[:3]))
-    assert data["task_id"].tolist() == [1, 1, 1]
+    assert data["obs"]["state"].dtype == torch.float32 and data["actions"].dtype == torch.float32
+    assert data["obs"]["task"].dtype == torch.int64 and data["mask"].dtype == torch.bool
+    torch.testing.assert_close(data["obs"]["state"], torch.from_numpy(pushed.observations[:3]))
+    assert data["obs"]["task"].tolist() == [1, 1, 1]
     assert data["actions"].shape == (3, 4, 4)
     assert (data["actions"] == data["actions"][..., :1]).all()
     assert data["actions"][..., 0].tolist() == [[1, 2, 3, 3], [2, 3, 3, 3], [3, 3, 3, 3]]
@@ -121,7 +140,7 @@ def test_chunks_repeat_the_last_action_past_the_end_and_mask_it():
     everything = demos_to_chunks(
         [pushed, failed], ["reach-v3", "push-v3"], horizon=2, only_successful=False
     )
-    assert everything["task_id"].tolist() == [1, 1, 1, 0, 0]
+    assert everything["obs"]["task"].tolist() == [1, 1, 1, 0, 0]
     assert everything["actions"][3:, :, 0].tolist() == [[9, 8], [8, 8]]
     assert everything["mask"][3:].tolist() == [[True, True], [True, False]]
 
@@ -142,7 +161,7 @@ def test_load_demos_explains_missing_or_corrupt_folders(tmp_path, reach_demos):
     corrupt = tmp_path / "corrupt"
     corrupt.mkdir()
     (corrupt / "manifest.json").write_text('{"format": "stepnft-demos", "vers')
-    with pytest.raises(ValueError, match="corrupt demonstrations at .*stepnft demos --out"):
+    with pytest.raises(ValueError, match="corrupt demonstrations at .*stepnft demos --demos.path"):
         load_demos(corrupt)
 
     (corrupt / "manifest.json").write_text(json.dumps({"format": "other", "version": 1}))
@@ -157,5 +176,11 @@ def test_load_demos_explains_missing_or_corrupt_folders(tmp_path, reach_demos):
     (corrupt / "reach-v3").mkdir()
     for entry in manifest["episodes"]:
         (corrupt / entry["file"]).write_bytes(b"not an npz file")
+    with pytest.raises(ValueError, match="corrupt demonstrations"):
+        load_demos(corrupt)
+
+    for entry in manifest["episodes"]:  # truncated, as by a full disk
+        whole = (reach_demos / entry["file"]).read_bytes()
+        (corrupt / entry["file"]).write_bytes(whole[: len(whole) // 2])
     with pytest.raises(ValueError, match="corrupt demonstrations"):
         load_demos(corrupt)

@@ -1,11 +1,13 @@
 import numpy as np
 import pytest
-from metaworld.policies import ENV_POLICY_MAP
 
-from stepnft.envs.instructions import INSTRUCTIONS, instruction_for
+from stepnft.envs import get_simulator, make_vec_env
 from stepnft.envs.metaworld import (
+    INSTRUCTIONS,
     TASK_NAMES,
+    MetaWorld,
     MetaWorldChunkEnv,
+    instruction_for,
     make_metaworld_vec_env,
     validate_tasks,
 )
@@ -20,11 +22,11 @@ GOAL_XYZ = slice(36, 39)
 def expert_actions(task: str, seed: int, max_steps: int = 200) -> np.ndarray:
     """The scripted expert's actions [T, 4] for one episode, run until its first success."""
     env = MetaWorldChunkEnv(task, n_exec=1, max_episode_steps=max_steps)
-    expert = ENV_POLICY_MAP[task]()
+    expert = MetaWorld().expert(task, seed=0)
     obs, _ = env.reset(seed=seed)
     actions, done = [], False
     while not done:
-        action = np.clip(expert.get_action(obs), -1, 1).astype(np.float32)
+        action = np.clip(expert.act(obs), -1, 1).astype(np.float32)
         obs, _, terminated, truncated, info = env.step(action[None])
         actions.append(action)
         done = terminated or truncated
@@ -69,9 +71,26 @@ def test_bad_arguments_are_refused():
         make_metaworld_vec_env(["reach-v3", "reach-v3"])
 
 
+def test_the_simulator_interface():
+    sim = get_simulator("metaworld")
+    assert isinstance(sim, MetaWorld) and (sim.state_dim, sim.action_dim) == (39, 4)
+    assert sim.task_names() == TASK_NAMES and sim.instruction("push-v3") == INSTRUCTIONS["push-v3"]
+    with pytest.raises(ValueError, match="unknown simulator 'gazebo'; choose one of: metaworld"):
+        get_simulator("gazebo")
+    from stepnft.config import EnvConfig
+
+    venv = make_vec_env(EnvConfig(tasks=["reach-v3"], envs_per_task=2, max_episode_steps=7), n_exec=3, seed=0)
+    assert venv.num_envs == 2 and venv.single_action_space.shape == (3, 4)
+    obs, _ = venv.reset(seed=[0, 1])
+    assert set(obs) == {"state"} and obs["state"].shape == (2, 39)
+    venv.close()
+
+
 def test_seeded_reset_depends_only_on_task_and_seed():
     env = MetaWorldChunkEnv("pick-place-v3", seed=123)
     first, info = env.reset(seed=5)
+    assert set(first) == {"state"}
+    first = first["state"]
     assert first.shape == (39,) and first.dtype == np.float32
     assert info == {"success": False, "steps": 0, "episode_steps": 0}
     rng = np.random.default_rng(0)
@@ -80,13 +99,13 @@ def test_seeded_reset_depends_only_on_task_and_seed():
     env.reset(seed=6)
     env.reset()
     env.step(rng.uniform(-1, 1, size=(4, 4)))
-    again, _ = env.reset(seed=5)
+    again = env.reset(seed=5)[0]["state"]
     np.testing.assert_array_equal(first, again)
 
-    fresh, _ = MetaWorldChunkEnv("pick-place-v3", seed=999).reset(seed=5)
+    fresh = MetaWorldChunkEnv("pick-place-v3", seed=999).reset(seed=5)[0]["state"]
     np.testing.assert_array_equal(first, fresh)
 
-    other, _ = env.reset(seed=6)
+    other = env.reset(seed=6)[0]["state"]
     assert not np.allclose(first[OBJECT_XYZ], other[OBJECT_XYZ])
     assert not np.allclose(first[GOAL_XYZ], other[GOAL_XYZ])
 
@@ -94,11 +113,11 @@ def test_seeded_reset_depends_only_on_task_and_seed():
 def test_unseeded_resets_follow_the_construction_seed():
     a = MetaWorldChunkEnv("push-v3", seed=7)
     b = MetaWorldChunkEnv("push-v3", seed=7)
-    a_states = [a.reset()[0] for _ in range(3)]
-    b_states = [b.reset()[0] for _ in range(3)]
+    a_states = [a.reset()[0]["state"] for _ in range(3)]
+    b_states = [b.reset()[0]["state"] for _ in range(3)]
     np.testing.assert_array_equal(np.stack(a_states), np.stack(b_states))
     assert not np.allclose(a_states[0][GOAL_XYZ], a_states[1][GOAL_XYZ])
-    c_state, _ = MetaWorldChunkEnv("push-v3", seed=8).reset()
+    c_state = MetaWorldChunkEnv("push-v3", seed=8).reset()[0]["state"]
     assert not np.allclose(a_states[0][GOAL_XYZ], c_state[GOAL_XYZ])
 
 
@@ -112,9 +131,9 @@ def test_chunks_run_until_truncation_then_step_is_a_no_op():
     assert [truncated for _, _, _, truncated, _ in results] == [False, False, True]
     assert not any(terminated for _, _, terminated, _, _ in results)
 
-    last_obs = results[-1][0]
+    last_obs = results[-1][0]["state"]
     obs, reward, terminated, truncated, info = env.step(chunk)
-    np.testing.assert_array_equal(obs, last_obs)
+    np.testing.assert_array_equal(obs["state"], last_obs)
     assert (reward, terminated, truncated) == (0.0, False, True)
     assert info == {"success": False, "steps": 0, "episode_steps": 10}
 
@@ -154,50 +173,25 @@ def test_vec_env_layout_and_distinct_sub_env_seeds():
     assert vec.task_ids.dtype == np.int64 and vec.task_ids.tolist() == [0, 0, 1, 1]
     assert vec.instructions == [instruction_for("reach-v3"), instruction_for("push-v3")]
     assert vec.action_space.shape == (4, 2, 4)
-    obs, _ = vec.reset()
+    obs = vec.reset()[0]["state"]
     assert obs.shape == (4, 39) and obs.dtype == np.float32
     assert not np.allclose(obs[0, GOAL_XYZ], obs[1, GOAL_XYZ])
     assert not np.allclose(obs[2, GOAL_XYZ], obs[3, GOAL_XYZ])
-    other, _ = make_metaworld_vec_env("reach-v3,push-v3", envs_per_task=2, seed=1).reset()
+    other_vec = make_metaworld_vec_env("reach-v3,push-v3", envs_per_task=2, seed=1)
+    other = other_vec.reset()[0]["state"]
     assert not np.allclose(obs[:, GOAL_XYZ], other[:, GOAL_XYZ])
     vec.close()
+    other_vec.close()
 
 
-def test_same_step_autoreset_keeps_the_finished_episodes_success():
-    # Sub-env 0 replays the expert (succeeds); sub-env 1 idles until truncation.
-    actions = expert_actions("reach-v3", seed=0)
-    max_steps = len(actions) + 5
-    vec = make_metaworld_vec_env("reach-v3", envs_per_task=2, n_exec=1, max_episode_steps=max_steps)
-    vec.reset(seed=[0, 1])
-    for t in range(max_steps):
-        batch = np.zeros((2, 1, 4), dtype=np.float32)
-        if t < len(actions):
-            batch[0, 0] = actions[t]
-        obs, _, terminated, truncated, info = vec.step(batch)
-        ended = terminated | truncated
-        if t == len(actions) - 1:
-            assert ended.tolist() == [True, False]
-            assert info["_final_info"].tolist() == [True, False]
-            assert info["final_info"]["success"][0]
-            assert info["final_info"]["episode_steps"][0] == len(actions)
-            # The top level already describes the next episode of sub-env 0.
-            assert not info["success"][0] and info["episode_steps"][0] == 0
-        elif t == max_steps - 1:
-            assert truncated[1] and info["_final_info"][1]
-            assert not info["final_info"]["success"][1]
-        else:
-            assert not ended.any()
-    vec.close()
-
-
-def test_disabled_autoreset_gives_chosen_states_and_tolerates_finished_envs():
-    vec = make_metaworld_vec_env(
-        ["reach-v3", "push-v3"], envs_per_task=2, n_exec=4, max_episode_steps=6, autoreset=False
-    )
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_waves_give_chosen_states_and_tolerate_finished_envs(num_workers):
+    vec = make_metaworld_vec_env(["reach-v3", "push-v3"], envs_per_task=2, n_exec=4, max_episode_steps=6,
+                                 num_workers=num_workers)
     seeds = [11, 12, 13, 14]
-    initial, _ = vec.reset(seed=seeds)
+    initial = vec.reset(seed=seeds)[0]["state"]
     for i, (task, seed) in enumerate(zip(vec.task_names, seeds)):
-        single, _ = MetaWorldChunkEnv(task).reset(seed=seed)
+        single = MetaWorldChunkEnv(task).reset(seed=seed)[0]["state"]
         np.testing.assert_array_equal(initial[i], single)
 
     chunk = np.full((4, 4, 4), 0.3, dtype=np.float32)
@@ -205,9 +199,14 @@ def test_disabled_autoreset_gives_chosen_states_and_tolerates_finished_envs():
     last_obs, _, _, truncated, info = vec.step(chunk)
     assert truncated.all() and info["episode_steps"].tolist() == [6] * 4
     obs, reward, _, truncated, info = vec.step(chunk)
-    np.testing.assert_array_equal(obs, last_obs)
+    np.testing.assert_array_equal(obs["state"], last_obs["state"])
     assert truncated.all() and (reward == 0).all() and (info["steps"] == 0).all()
 
-    again, _ = vec.reset(seed=seeds)
+    states = vec.rng_state()
+    unseeded = vec.reset()[0]["state"]
+    vec.set_rng_state(states)  # a checkpoint's env streams continue exactly
+    np.testing.assert_array_equal(vec.reset()[0]["state"], unseeded)
+
+    again = vec.reset(seed=seeds)[0]["state"]
     np.testing.assert_array_equal(again, initial)
     vec.close()

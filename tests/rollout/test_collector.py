@@ -1,12 +1,14 @@
-"""Rollout waves: what each stored transition holds (masks, labels, recorded denoising step)."""
+"""The collector: what a wave's batch holds (episodes, calls, recorded denoising steps)."""
 
 import numpy as np
 import pytest
 import torch
 
+from stepnft.algos.base import RolloutSpec
+from stepnft.batch import Batch
 from stepnft.envs.metaworld import make_metaworld_vec_env
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
-from stepnft.rollout.collector import concat_transitions, run_wave
+from stepnft.rollout.collector import Collector
 
 GOAL_X, GOAL, HAND = 36, slice(36, 39), slice(0, 3)
 MAX_STEPS = 58  # not a multiple of n_exec: the last chunk of a truncated episode is cut short
@@ -14,12 +16,14 @@ MAX_STEPS = 58  # not a multiple of n_exec: the last chunk of a truncated episod
 
 class SeekIfGoalBeyond(FlowPolicy):
     """A random flow policy whose executed actions steer to the reach goal when the goal's x is
-    beyond ``threshold`` and stay still otherwise: one known env succeeds, the other fails."""
+    beyond ``threshold`` and stay still otherwise: one known env succeeds, the other fails.
+    (Its processor is the identity on the state: mean 0, std 1, a wide clip.)"""
 
     threshold = 0.0
 
-    def sample(self, state, lang=None, noise_level=0.0, generator=None, stochastic_steps="all"):
-        out = super().sample(state, lang, noise_level, generator, stochastic_steps)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+        state = obs["state"]
         seek = (state[:, GOAL_X] > self.threshold)[:, None, None]
         out.actions = torch.zeros_like(out.actions)
         out.actions[..., :3] = torch.where(seek, 10.0 * (state[:, None, GOAL] - state[:, None, HAND]), 0.0)
@@ -28,84 +32,104 @@ class SeekIfGoalBeyond(FlowPolicy):
 
 @pytest.fixture(scope="module")
 def wave_and_steps():
-    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=MAX_STEPS, autoreset=False)
+    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=MAX_STEPS)
     seeds = [0, 1]
-    goals_x = venv.reset(seed=seeds)[0][:, GOAL_X]
+    goals_x = venv.reset(seed=seeds)[0]["state"][:, GOAL_X]
     assert goals_x[0] != goals_x[1]
     torch.manual_seed(0)
-    policy = SeekIfGoalBeyond(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, horizon=6, n_exec=4))
+    policy = SeekIfGoalBeyond(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, horizon=6, n_exec=4,
+                                               state_clip=100.0))
     policy.threshold = float(goals_x.mean())
     seeker = int(np.argmax(goals_x))
 
     infos = []
     step = venv.step
     venv.step = lambda actions: (out := step(actions), infos.append(out[4]))[0]
-    wave = run_wave(policy, venv, None, noise_level=0.2, generator=torch.Generator().manual_seed(0),
-                    seeds=seeds, record=True)
+    batch = Collector(venv).play_wave(policy, 0.2, torch.Generator().manual_seed(0), seeds=seeds,
+                                      record=RolloutSpec(0.2))
     venv.close()
-    return wave, infos, seeker
+    return batch, infos, seeker
 
 
 def test_one_env_succeeds_early_the_other_runs_to_the_cap(wave_and_steps):
-    wave, infos, seeker = wave_and_steps
-    assert wave.success.tolist() == [i == seeker for i in range(2)]
-    assert wave.length[seeker] < MAX_STEPS and wave.length[1 - seeker] == MAX_STEPS
-    np.testing.assert_array_equal(wave.length, infos[-1]["episode_steps"])
+    batch, infos, seeker = wave_and_steps
+    assert batch.episode_success.tolist() == [i == seeker for i in range(2)]
+    length = batch.episode_length
+    assert length[seeker] < MAX_STEPS and length[1 - seeker] == MAX_STEPS
+    np.testing.assert_array_equal(length.numpy(), infos[-1]["episode_steps"])
+    assert batch.episode_seed.tolist() == [0, 1] and batch.episode_task.tolist() == [0, 0]
+    assert batch.env_steps == int(length.sum())
 
 
-def test_mask_marks_exactly_the_executed_positions(wave_and_steps):
-    wave, infos, seeker = wave_and_steps
-    tr = wave.transitions
-    horizon = tr["mask"].shape[1]
+def test_calls_hold_observation_mask_reward_and_done(wave_and_steps):
+    batch, infos, seeker = wave_and_steps
+    horizon = batch.mask.shape[1]
     steps = np.stack([info["steps"] for info in infos])  # [calls, N], 0 once an episode ended
     for env in range(2):
+        mine = batch.episode == env
         executed = [s for s in steps[:, env] if s > 0]
         expected = torch.stack([torch.arange(horizon) < s for s in executed])
-        assert torch.equal(tr["mask"][tr["env_index"] == env], expected)
-        assert int(tr["mask"][tr["env_index"] == env].sum()) == wave.length[env]
-    assert not tr["mask"][:, 4:].any()  # n_exec = 4 of horizon 6
+        assert torch.equal(batch.mask[mine], expected)
+        assert int(batch.mask[mine].sum()) == batch.episode_length[env]
+        assert batch.done[mine].tolist() == [False] * (len(executed) - 1) + [True]  # only the last call ends it
+    assert not batch.mask[:, 4:].any()  # n_exec = 4 of horizon 6
     last_chunk = [s for s in steps[:, 1 - seeker] if s > 0][-1]
     assert last_chunk == MAX_STEPS % 4 == 2  # the truncated episode's last chunk ran 2 steps
+    assert batch.obs["state"].shape == (batch.num_calls, 39) and batch.obs["task"].tolist() == [0] * batch.num_calls
+    assert batch.reward.dtype == torch.float32 and (batch.reward[batch.episode == seeker] > 0).any()
 
 
-def test_labels_are_the_episode_outcome(wave_and_steps):
-    wave, _, seeker = wave_and_steps
-    tr = wave.transitions
-    assert torch.equal(tr["y"], torch.where(tr["env_index"] == seeker, 1.0, -1.0))
+def test_one_recorded_denoising_step_per_call_and_no_labels(wave_and_steps):
+    batch, _, _ = wave_and_steps
+    m = batch.num_calls
+    assert m == int(np.ceil(batch.episode_length.numpy() / 4).sum())
+    assert batch.num_steps == m and batch.call.tolist() == list(range(m))
+    for key in ("x_t", "x_next", "v_old"):
+        assert getattr(batch, key).shape == (m, 6, 4), key
+    assert set(batch.t.tolist()) <= {1.0, 0.75, 0.5, 0.25} and len(set(batch.t.tolist())) > 1
+    assert torch.allclose(batch.dt, torch.full((m,), 0.25))
+    assert not torch.equal(batch.x_t, batch.x_next)
+    assert not hasattr(batch, "y")  # labels are the algorithm's business
+    assert torch.equal(batch.step_success, batch.episode_success[batch.episode])
+
+    twice = Batch.concat([batch, batch])
+    assert twice.num_episodes == 4 and twice.num_steps == 2 * m
+    assert torch.equal(twice.step_episode[m:], batch.step_episode + 2)
+    assert torch.equal(twice.steps_obs(torch.arange(m, 2 * m))["state"], batch.obs["state"])
 
 
-def test_recorded_denoising_step(wave_and_steps):
-    wave, _, _ = wave_and_steps
-    tr = wave.transitions
-    m = tr["y"].shape[0]
-    assert m == int(np.ceil(wave.length / 4).sum())  # one per policy call of each episode
-    for key in ("x_t", "x_next", "v_old", "actions"):
-        assert tr[key].shape == (m, 6, 4), key
-    assert tr["state"].shape == (m, 39) and tr["task_id"].tolist() == [0] * m
-    assert set(tr["t"].tolist()) <= {1.0, 0.75, 0.5, 0.25} and len(set(tr["t"].tolist())) > 1
-    assert torch.allclose(tr["dt"], torch.full((m,), 0.25))
-    assert not torch.equal(tr["x_t"], tr["x_next"])
-
-    batch = concat_transitions([wave, wave])
-    assert batch["y"].shape == (2 * m,) and torch.equal(batch["mask"][m:], tr["mask"])
-
-
-def test_record_all_steps_stores_k_transitions_per_call():
-    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=12, autoreset=False)
+def test_record_all_steps_stores_k_transitions_per_call_and_each_observation_once():
+    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=12)
     torch.manual_seed(0)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, horizon=4, n_exec=4))
-    gen = torch.Generator().manual_seed(0)
-    one = run_wave(policy, venv, None, 0.3, gen, seeds=[0, 1], record=True)
-    every = run_wave(policy, venv, None, 0.3, gen, seeds=[0, 1], record=True, record_steps="all")
+    collector = Collector(venv, torch.Generator().manual_seed(0))
+    one = collector.play_wave(policy, 0.3, collector.generator, seeds=[0, 1], record=RolloutSpec(0.3))
+    every = collector.play_wave(policy, 0.3, collector.generator, seeds=[0, 1],
+                                record=RolloutSpec(0.3, record_steps="all"))
     k = policy.config.num_inference_steps
-    assert len(every.transitions["y"]) == k * len(one.transitions["y"]) == k * 6
-    # Each call's K transitions share its observation, mask and label and chain x_next -> x_t.
-    tr = every.transitions
+    assert every.num_calls == one.num_calls == 6 and every.num_steps == k * one.num_steps == k * 6
+    assert every.obs["state"].shape == (6, 39)  # stored once per call, not once per step
+    # Each call's K transitions chain x_next -> x_t and end at the sampled chunk.
     for call in range(6):
         rows = slice(k * call, k * (call + 1))
-        assert (tr["state"][rows] == tr["state"][k * call]).all()
-        assert (tr["mask"][rows] == tr["mask"][k * call]).all()
-        torch.testing.assert_close(tr["x_next"][rows][:-1], tr["x_t"][rows][1:])
-        torch.testing.assert_close(tr["x_next"][rows][-1], tr["actions"][k * call])
-        assert tr["t"][rows].tolist() == [1.0, 0.75, 0.5, 0.25]
+        assert every.call[rows].tolist() == [call] * k
+        torch.testing.assert_close(every.x_next[rows][:-1], every.x_t[rows][1:])
+        torch.testing.assert_close(every.x_next[rows][-1], every.actions[call])
+        assert every.t[rows].tolist() == [1.0, 0.75, 0.5, 0.25]
+    venv.close()
+
+
+def test_collect_plays_whole_waves_and_resumes_its_streams_exactly():
+    venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=8)
+    torch.manual_seed(0)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    collector = Collector(venv, torch.Generator().manual_seed(0))
+    spec = RolloutSpec(0.3)
+    state = collector.state_dict()
+    first = collector.collect(policy, 5, spec)  # 5 episodes on 4 envs: two waves
+    assert first.num_episodes == 8 and first.episode_task.tolist() == [0, 0, 1, 1] * 2
+    assert (first.episode_seed == -1).all()
+    collector.load_state_dict(state)
+    again = collector.collect(policy, 5, spec)
+    assert torch.equal(first.x_next, again.x_next) and torch.equal(first.obs["state"], again.obs["state"])
     venv.close()

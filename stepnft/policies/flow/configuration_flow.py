@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 
 @dataclass
 class FlowPolicyConfig:
     """Sizes and sampling settings of a :class:`FlowPolicy`; saved as ``config.json``."""
+
+    type: ClassVar[str] = "flow"
 
     state_dim: int = 39
     """Proprioceptive / state observation size (MetaWorld: 39)."""
@@ -15,6 +18,9 @@ class FlowPolicyConfig:
     """Size of the frozen instruction embedding (0: no language input)."""
     lang_proj_dim: int = 64
     """The instruction embedding is projected to this size before the velocity MLP."""
+    language_encoder: str = "default"
+    """Frozen sentence encoder of the instructions: 'default' (packaged all-MiniLM-L6-v2) or a
+    local sentence-transformers folder. Saved with the policy, so evaluation embeds alike."""
     action_dim: int = 4
     """Action dimensions A."""
     horizon: int = 4

@@ -1,0 +1,161 @@
+"""The environment interface every simulator implements.
+
+A :class:`Simulator` names its tasks and their instructions, builds single *chunk envs*
+(gymnasium envs whose action is a chunk of ``n_exec`` low-level actions) and batches them in a
+:class:`ChunkVecEnv`. The rest of stepnft sees only this interface: the collector plays
+episodes through a ``ChunkVecEnv``, demonstrations come from ``Simulator.expert``, videos from
+``Simulator.make_env(render_size=...)``.
+
+Chunk env contract (one task):
+    observation: dict with ``state`` float32 [S] (and, for camera policies, images)
+    action: float32 [n_exec, A] in [-1, 1], run row by row
+    step -> obs, summed reward, terminated, truncated, info with
+        ``success`` (bool, success at any step of this episode so far),
+        ``steps`` (env steps run by this call), ``episode_steps`` (since reset)
+    ``reset(seed=s)`` gives an initial state that depends only on (task, s); an unseeded reset
+    continues the env's own stream. Stepping an ended episode is a no-op: same observation,
+    reward 0, the same flags, ``steps`` 0, so a batch can keep stepping its finished members.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from stepnft.envs.sharded import ShardedVectorEnv
+
+
+class RenderingError(RuntimeError):
+    """Offscreen rendering is unavailable on this machine."""
+
+
+class Expert(ABC):
+    """A scripted demonstrator: one low-level action per observation."""
+
+    @abstractmethod
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Action float [A] (clipped to [-1, 1] by the caller)."""
+
+
+class Simulator(ABC):
+    """One simulator: its tasks, dimensions and env factories."""
+
+    name: ClassVar[str]
+    """Registry name (``env.name``)."""
+    label: ClassVar[str]
+    """Human name used in messages."""
+    state_dim: ClassVar[int]
+    action_dim: ClassVar[int]
+    control_hz: ClassVar[float]
+    """Env steps per simulated second (the frame rate of videos)."""
+
+    @abstractmethod
+    def task_names(self) -> list[str]:
+        """Every task this simulator offers."""
+
+    @abstractmethod
+    def instruction(self, task: str) -> str:
+        """The natural-language instruction of ``task``."""
+
+    @abstractmethod
+    def make_env(self, task: str, n_exec: int = 1, max_episode_steps: int = 200, terminate_on_success: bool = True,
+                 seed: int = 0, render_size: tuple[int, int] | None = None) -> gym.Env:
+        """One chunk env (see the module doc); ``render_size=(h, w)`` enables ``render()``:
+        upright uint8 frames ``[h, w, 3]``."""
+
+    @abstractmethod
+    def expert(self, task: str, seed: int) -> Expert:
+        """A scripted demonstrator for ``task`` (its own randomness seeded by ``seed``)."""
+
+    def validate_tasks(self, tasks: str | Sequence[str]) -> list[str]:
+        """Checks task names; ``tasks`` is a list or a comma-separated string."""
+        if isinstance(tasks, str):
+            tasks = [task.strip() for task in tasks.split(",") if task.strip()]
+        tasks = list(tasks)
+        valid = self.task_names()
+        if not tasks:
+            raise ValueError(f"no {self.label} task given; valid names: {', '.join(valid)}")
+        for task in tasks:
+            if task not in valid:
+                raise ValueError(f"unknown {self.label} task {task!r}; valid names: {', '.join(valid)}")
+        return tasks
+
+    def make_vec_env(self, tasks: str | Sequence[str], envs_per_task: int = 1, n_exec: int = 4,
+                     max_episode_steps: int = 200, terminate_on_success: bool = True, seed: int = 0,
+                     num_workers: int = 0) -> "ChunkVecEnv":
+        """``len(tasks) * envs_per_task`` chunk envs; sub-env ``i`` runs ``tasks[i // envs_per_task]``.
+        ``num_workers`` 0 steps them in this process, >= 1 in that many worker processes."""
+        tasks = self.validate_tasks(tasks)
+        if len(set(tasks)) != len(tasks):
+            raise ValueError(f"each task may appear once, got {', '.join(tasks)}")
+        if envs_per_task < 1:
+            raise ValueError(f"envs_per_task must be >= 1, got {envs_per_task}")
+        task_ids = np.repeat(np.arange(len(tasks), dtype=np.int64), envs_per_task)
+        # Distinct, well-mixed sub-env seeds, so runs with nearby `seed`s share no streams.
+        env_seeds = np.random.SeedSequence(seed).generate_state(len(task_ids))
+        env_fns = [partial(self.make_env, tasks[k], n_exec=n_exec, max_episode_steps=max_episode_steps,
+                           terminate_on_success=terminate_on_success, seed=int(s)) for k, s in zip(task_ids, env_seeds)]
+        layout = dict(tasks=tasks, instructions=[self.instruction(t) for t in tasks], task_ids=task_ids)
+        if num_workers > 0:
+            return ShardedChunkVecEnv(env_fns, num_workers=num_workers, **layout)
+        return ChunkVecEnv(env_fns, **layout)
+
+
+class _TaskLayout:
+    """The multi-task layout every chunk vector env shares; sets ``tasks``, ``instructions``
+    (per task), ``task_ids`` [N] and ``task_names`` [N], then builds the gymnasium class it is
+    mixed into with autoreset disabled (the collector resets whole waves itself)."""
+
+    def __init__(self, env_fns: list[Callable[[], gym.Env]], *, tasks: list[str], instructions: list[str],
+                 task_ids: np.ndarray, **vector_kwargs: Any):
+        self.tasks = list(tasks)
+        self.instructions = list(instructions)
+        self.task_ids = np.asarray(task_ids, dtype=np.int64)
+        self.task_names = [self.tasks[i] for i in self.task_ids]
+        super().__init__(env_fns, **vector_kwargs)
+
+    def rng_state(self) -> list[dict]:
+        """Each sub-env's RNG state (JSON-serialisable), for checkpoints."""
+        return [rng.bit_generator.state for rng in self.get_attr("np_random")]
+
+    def set_rng_state(self, states: list[dict]) -> None:
+        """Restore :meth:`rng_state`: unseeded resets then continue the same streams."""
+        rngs = []
+        for state in states:
+            rng = np.random.Generator(np.random.PCG64())
+            rng.bit_generator.state = state
+            rngs.append(rng)
+        self.set_attr("np_random", rngs)
+
+
+class ChunkVecEnv(_TaskLayout, gym.vector.SyncVectorEnv):
+    """Chunk envs of several tasks stepped in this process, autoreset disabled.
+
+    Call ``reset(seed=[s_0, ..., s_{N-1}])`` (or unseeded), then ``step`` the whole batch
+    until ``terminated | truncated`` holds everywhere; finished sub-envs answer with no-ops and
+    top-level ``info["success"]`` is each episode's result. Observations are dicts of arrays
+    ``[N, ...]``; actions ``[N, n_exec, A]``.
+    """
+
+    def __init__(self, env_fns, **layout):
+        super().__init__(env_fns, autoreset_mode=AutoresetMode.DISABLED, **layout)
+
+    def step(self, actions: np.ndarray):
+        # SyncVectorEnv refuses to step a finished sub-env when autoreset is disabled; chunk
+        # envs treat that step as a no-op, so a wave can step the whole batch.
+        self._autoreset_envs[:] = False
+        return super().step(actions)
+
+
+class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
+    """:class:`ChunkVecEnv` with the sub-envs dealt out to ``num_workers`` worker processes
+    (MuJoCo is CPU-bound: one worker per core). Same layout, info keys and results."""
+
+    def __init__(self, env_fns, num_workers: int = 2, **layout):
+        super().__init__(env_fns, num_workers=num_workers, **layout)

@@ -1,0 +1,141 @@
+"""The policy interface and the registry keyed by the saved ``type`` (LeRobot-style).
+
+A policy is a velocity field ``v_θ(x_t, t | o)`` over action chunks ``[H, A]``. It splits into
+``encode(obs)`` (the observation context, computed once per policy call: for a VLA the
+vision-language prefix) and ``denoise(context, x_t, t)`` (the action expert), so sampling runs
+the encoder once and the denoiser K times. ``obs`` is the *processed* observation dict: raw
+observations go through ``policy.processor`` first (normalisation, instruction lookup), outside
+the network.
+
+Saved as ``config.json`` (with ``"type"``) + ``model.safetensors`` + ``processor.safetensors``;
+loading dispatches on ``type`` and never unpickles.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import Tensor, nn
+
+from stepnft.sampling import ChunkSample, sample_chunk
+
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+PROCESSOR_NAME = "processor.safetensors"
+
+POLICY_TYPES: dict[str, str] = {
+    "flow": "stepnft.policies.flow:FlowPolicy",
+}
+"""Registered policy classes by saved ``type`` (imported on first use). A new policy adds a line."""
+
+
+def policy_class(type_name: str) -> type["Policy"]:
+    if type_name not in POLICY_TYPES:
+        raise ValueError(f"unknown policy type {type_name!r}; known: {', '.join(POLICY_TYPES)}")
+    module, cls = POLICY_TYPES[type_name].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+class Policy(nn.Module, ABC):
+    """What every policy offers the collector, the algorithms and evaluation."""
+
+    type: ClassVar[str]
+    config_class: ClassVar[type]
+
+    def __init__(self, config):
+        super().__init__()
+        self.config = config
+        self.processor = self.make_processor(config)
+
+    # --- what a policy implements -----------------------------------------------------------
+    @staticmethod
+    @abstractmethod
+    def make_processor(config) -> Any:
+        """The input processor of this policy (see ``stepnft.policies.processor``)."""
+
+    @abstractmethod
+    def encode(self, obs: dict[str, Tensor]) -> Any:
+        """Observation context from processed ``obs`` (batch ``B``); computed once per call."""
+
+    @abstractmethod
+    def denoise(self, context: Any, x_t: Tensor, t: Tensor) -> Tensor:
+        """Velocity ``[B, H, A]`` at ``x_t`` ``[B, H, A]``, ``t`` ``[B]`` given the context."""
+
+    # --- what every policy gets -------------------------------------------------------------
+    @property
+    def chunk_shape(self) -> tuple[int, int]:
+        return self.config.horizon, self.config.action_dim
+
+    def velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
+        """``v_θ(x_t, t | o)`` for processed ``obs``: the training forward pass."""
+        return self.denoise(self.encode(obs), x_t, t)
+
+    def forward(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
+        return self.velocity(obs, x_t, t)
+
+    @torch.no_grad()
+    def sample(self, obs: dict[str, Tensor], noise_level: float = 0.0, generator: torch.Generator | None = None,
+               stochastic_steps: str = "all", keep_path: bool = False) -> ChunkSample:
+        """Sample chunks ``[B, H, A]`` for processed ``obs``: ODE when ``noise_level = 0``
+        (evaluation), else Flow-SDE; the context is encoded once."""
+        context = self.encode(obs)
+        batch = next(iter(obs.values())).shape[0]
+        return sample_chunk(lambda x, t: self.denoise(context, x, t), (batch, *self.chunk_shape),
+                            num_steps=self.config.num_inference_steps, noise_level=noise_level, generator=generator,
+                            stochastic_steps=stochastic_steps, device=next(self.parameters()).device,
+                            keep_path=keep_path)
+
+    # --- save / load ---------------------------------------------------------------------------
+    def save_pretrained(self, directory: str | Path) -> Path:
+        """Write ``config.json``, ``model.safetensors`` and ``processor.safetensors`` into ``directory``."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        (directory / CONFIG_NAME).write_text(json.dumps({"type": self.type, **self.config.to_dict()}, indent=2))
+        save_file({k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}, str(directory / WEIGHTS_NAME))
+        save_file({k: v.contiguous() for k, v in self.processor.state_dict().items()}, str(directory / PROCESSOR_NAME))
+        return directory
+
+    @classmethod
+    def from_pretrained(cls, directory: str | Path, map_location: str = "cpu") -> "Policy":
+        """Load a saved policy of any registered type (or of ``cls``'s type when called on a
+        subclass); a ValueError with one line if the folder is missing, corrupt or another type."""
+        directory = Path(directory)
+        config_path, weights_path = directory / CONFIG_NAME, directory / WEIGHTS_NAME
+        if not config_path.is_file() or not weights_path.is_file():
+            raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME} and {WEIGHTS_NAME}")
+        try:
+            data = json.loads(config_path.read_text())
+            if not isinstance(data, dict):
+                raise ValueError(f"{CONFIG_NAME} must hold a JSON object")
+            type_name = data.pop("type", "flow")
+            target = policy_class(type_name)
+            if cls is not Policy and not issubclass(target, cls):
+                raise ValueError(f"it holds a {type_name!r} policy, not a {cls.type!r} one")
+            policy = target(target.config_class.from_dict(data))
+            weights = load_file(str(weights_path), device=map_location)
+            processor_path = directory / PROCESSOR_NAME
+            if processor_path.is_file():
+                policy.processor.load_state_dict(load_file(str(processor_path)))
+            else:  # saved before processors existed: the statistics were model buffers
+                policy.processor.load_state_dict({k: weights.pop(k) for k in ("state_mean", "state_std")})
+            policy.load_state_dict(weights)
+        except (ValueError, TypeError, KeyError, RuntimeError, OSError, SafetensorError, json.JSONDecodeError) as err:
+            raise ValueError(f"corrupt policy checkpoint at {directory}: {str(err).splitlines()[0]}") from err
+        return policy
+
+
+def load_policy(directory: str | Path) -> Policy:
+    """A saved policy of any registered type."""
+    return Policy.from_pretrained(directory)
+
+
+def make_policy(config) -> Policy:
+    """A new policy from its config (the config's ``type`` picks the class)."""
+    return policy_class(config.type)(config)
