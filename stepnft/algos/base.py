@@ -40,6 +40,8 @@ class RolloutSpec:
     """Every denoising step stochastic, or only the recorded one (the others ODE)."""
     record_steps: Literal["one", "all"] = "one"
     """Store one random denoising step per policy call, or all K of them."""
+    group_size: int = 1
+    """Episodes per group started from the same task and initial state (GRPO); 1: no groups."""
 
 
 @dataclass

@@ -47,6 +47,11 @@ class BanditChunkEnv(gym.Env):
         self._context: np.ndarray | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if options and options.get("idle"):  # sit this wave out (see stepnft.envs.base)
+            if self._context is None:
+                self._context = np.zeros(CONTEXT_DIM, dtype=np.float32)
+            self._steps, self._all_within, self._success, self._done = 0, False, False, True
+            return {"state": self._context.copy()}, self._info(0)
         super().reset(seed=seed)
         self._context = self.np_random.uniform(-1.0, 1.0, CONTEXT_DIM).astype(np.float32)
         self._steps, self._all_within, self._success, self._done = 0, True, False, False

@@ -15,6 +15,9 @@ Chunk env contract (one task):
     ``reset(seed=s)`` gives an initial state that depends only on (task, s); an unseeded reset
     continues the env's own stream. Stepping an ended episode is a no-op: same observation,
     reward 0, the same flags, ``steps`` 0, so a batch can keep stepping its finished members.
+    ``reset(options={"idle": True})`` sits a wave out: the env does not simulate, leaves its RNG
+    alone and is ended at once (truncated, ``episode_steps`` 0), so a wave can use a subset of
+    a batch (``stepnft.rollout.collector`` allocates episodes to tasks this way).
 """
 
 from __future__ import annotations
@@ -119,6 +122,13 @@ class _TaskLayout:
         self.task_ids = np.asarray(task_ids, dtype=np.int64)
         self.task_names = [self.tasks[i] for i in self.task_ids]
         super().__init__(env_fns, **vector_kwargs)
+
+    def reset(self, *, seed=None, options=None):
+        if options and "reset_mask" in options and any(obs is None for obs in self._env_obs):
+            # A partial reset batches every sub-env's observation: give the never-reset ones one
+            # without simulating anything (an idle reset).
+            super().reset(options={"idle": True})
+        return super().reset(seed=seed, options=options)
 
     def rng_state(self) -> list[dict]:
         """Each sub-env's RNG state (JSON-serialisable), for checkpoints."""

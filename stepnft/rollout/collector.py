@@ -1,10 +1,12 @@
 """The collector: plays whole episodes of a policy in a vector env and returns a :class:`Batch`.
 
-One *wave* = every sub-env plays exactly one episode from a reset (autoreset disabled, the
-finished sub-envs idle). :meth:`Collector.collect` plays waves until it has the episodes an
-iteration asks for, sampling as the algorithm's :class:`RolloutSpec` says and recording its
-denoising steps; evaluation plays ODE waves from fixed initial-state seeds. The collector
-assigns no labels: what an episode's outcome means is the algorithm's business.
+One *wave* = every active sub-env plays exactly one episode from a reset (autoreset disabled,
+the finished sub-envs idle). :meth:`Collector.collect` plays waves until it has the episodes an
+iteration asks for, per task if asked (sub-envs a task does not need sit the wave out),
+sampling as the algorithm's :class:`RolloutSpec` says and recording its denoising steps; with
+``group_size`` G, consecutive groups of G sub-envs of a task start from one shared initial
+state. Evaluation plays ODE waves from fixed initial-state seeds. The collector assigns no
+labels: what an episode's outcome means is the algorithm's business.
 
 ``collect`` and ``state_dict`` are the seam a remote (e.g. Ray) collector implements.
 """
@@ -33,22 +35,66 @@ class Collector:
     def num_envs(self) -> int:
         return self.venv.num_envs
 
-    def collect(self, policy: Policy, episodes: int, spec: RolloutSpec) -> Batch:
-        """At least ``episodes`` episodes (whole waves) sampled and recorded as ``spec`` says."""
-        waves = math.ceil(episodes / self.num_envs)
-        return Batch.concat([self.play_wave(policy, spec.noise_level, self.generator, record=spec)
-                             for _ in range(waves)])
+    def collect(self, policy: Policy, episodes: int, spec: RolloutSpec,
+                task_episodes: list[int] | None = None) -> Batch:
+        """At least ``episodes`` episodes (whole waves of every sub-env) sampled and recorded as
+        ``spec`` says; or, with ``task_episodes``, exactly that many of each task."""
+        if task_episodes is None:
+            waves = [None] * math.ceil(episodes / self.num_envs)
+        else:
+            waves = self._wave_masks(task_episodes, spec.group_size)
+        return Batch.concat([self.play_wave(policy, spec.noise_level, self.generator, record=spec, active=active)
+                             for active in waves])
+
+    def _wave_masks(self, task_episodes: list[int], group_size: int) -> list[np.ndarray]:
+        """Active sub-envs of each wave so that task k plays ``task_episodes[k]`` episodes."""
+        task_ids = np.asarray(self.venv.task_ids)
+        per_task = [np.flatnonzero(task_ids == k) for k in range(len(self.venv.tasks))]
+        if len(task_episodes) != len(per_task) or any(n % group_size for n in task_episodes):
+            raise ValueError(f"task_episodes must give one count per task, each a multiple of {group_size}")
+        waves = max(math.ceil(n / len(envs)) for n, envs in zip(task_episodes, per_task))
+        masks = [np.zeros(self.num_envs, dtype=bool) for _ in range(waves)]
+        for n, envs in zip(task_episodes, per_task):
+            for w in range(waves):
+                masks[w][envs[: max(0, min(len(envs), n - w * len(envs)))]] = True
+        return [m for m in masks if m.any()]
+
+    def _group_seeds(self, active: np.ndarray, group_size: int) -> list[int | None]:
+        """Reset seeds giving each group of ``group_size`` active sub-envs of a task one initial state."""
+        seeds: list[int | None] = [None] * self.num_envs
+        task_ids = np.asarray(self.venv.task_ids)
+        for k in range(len(self.venv.tasks)):
+            envs = np.flatnonzero(active & (task_ids == k))
+            if len(envs) % group_size:
+                raise ValueError(f"{len(envs)} sub-envs of task {self.venv.tasks[k]!r} in a wave do not split into "
+                                 f"groups of {group_size}: make env.envs_per_task a multiple of the group size")
+            for group in envs.reshape(-1, group_size):
+                # Far above evaluation seeds and below demonstration seeds (stepnft.data.demos).
+                seed = int(torch.randint(2**24, 2**31, (1,), generator=self.generator))
+                for i in group:
+                    seeds[i] = seed
+        return seeds
 
     def play_wave(self, policy: Policy, noise_level: float, generator: torch.Generator,
-                  seeds: list[int] | None = None, record: RolloutSpec | None = None) -> Batch:
-        """Every sub-env plays one episode from ``reset(seed=seeds)``; with ``record`` the batch
-        holds its policy calls and recorded denoising steps, else only the episode table."""
+                  seeds: list[int] | None = None, record: RolloutSpec | None = None,
+                  active: np.ndarray | None = None) -> Batch:
+        """Every sub-env in ``active`` (default: all) plays one episode from
+        ``reset(seed=seeds)``; the others sit the wave out. With ``record`` the batch holds the
+        policy calls and recorded denoising steps, else only the episode table."""
         venv, n = self.venv, self.venv.num_envs
         horizon, action_dim = policy.chunk_shape
         n_exec = policy.config.n_exec
-        raw, _ = venv.reset(seed=seeds)
+        if record is not None and record.group_size > 1 and seeds is None:
+            seeds = self._group_seeds(np.ones(n, dtype=bool) if active is None else active, record.group_size)
+        if active is None or active.all():
+            active = np.ones(n, dtype=bool)
+            raw, _ = venv.reset(seed=seeds)
+        else:
+            venv.reset(seed=seeds, options={"reset_mask": active.copy()})
+            raw, _ = venv.reset(options={"reset_mask": ~active, "idle": True})
+        rows = np.flatnonzero(active)  # sub-envs playing: the rows of the episode table
         task_ids = torch.as_tensor(venv.task_ids)
-        done = np.zeros(n, dtype=bool)
+        done = ~active
         success = np.zeros(n, dtype=bool)
         length = np.zeros(n, dtype=np.int64)
         stochastic_steps = record.stochastic_steps if record else "all"
@@ -57,37 +103,38 @@ class Collector:
         steps: list[dict[str, Tensor]] = []
         num_calls = 0
         while not done.all():
-            active = np.flatnonzero(~done)
-            obs = {k: torch.as_tensor(v[active]) for k, v in raw.items()} | {"task": task_ids[active]}
+            playing = np.flatnonzero(~done)
+            obs = {k: torch.as_tensor(v[playing]) for k, v in raw.items()} | {"task": task_ids[playing]}
             sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=generator,
                                    stochastic_steps=stochastic_steps, keep_path=keep_path)
             chunk = np.zeros((n, n_exec, action_dim), dtype=np.float32)
-            chunk[active] = sample.actions[:, :n_exec].clamp(-1.0, 1.0).numpy()
+            chunk[playing] = sample.actions[:, :n_exec].clamp(-1.0, 1.0).numpy()
             raw, reward, terminated, truncated, info = venv.step(chunk)
-            executed = np.asarray(info["steps"])[active]
-            length[active] += executed
+            executed = np.asarray(info["steps"])[playing]
+            length[playing] += executed
             success |= np.asarray(info["success"], dtype=bool) & ~done
-            ended = (np.asarray(terminated) | np.asarray(truncated))[active]
-            done[active] |= ended
+            ended = (np.asarray(terminated) | np.asarray(truncated))[playing]
+            done[playing] |= ended
             if record is not None:
                 calls.append({
                     "obs": obs, "actions": sample.actions,
                     "mask": torch.arange(horizon)[None, :] < torch.as_tensor(executed)[:, None],
-                    "reward": torch.as_tensor(np.asarray(reward, dtype=np.float32)[active]),
-                    "done": torch.as_tensor(ended), "episode": torch.as_tensor(active, dtype=torch.int64),
+                    "reward": torch.as_tensor(np.asarray(reward, dtype=np.float32)[playing]),
+                    "done": torch.as_tensor(ended),
+                    "episode": torch.as_tensor(np.searchsorted(rows, playing), dtype=torch.int64),
                 })
                 if keep_path:
                     step = sample.all_steps()
                     step["call"] = num_calls + step.pop("sample")
                 else:
                     step = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t,
-                            "dt": sample.dt, "call": num_calls + torch.arange(len(active))}
+                            "dt": sample.dt, "call": num_calls + torch.arange(len(playing))}
                 steps.append(step)
-                num_calls += len(active)
+                num_calls += len(playing)
+        seed_of = [-1 if seeds is None or seeds[i] is None else seeds[i] for i in rows]
         episodes = {
-            "episode_success": torch.as_tensor(success), "episode_task": task_ids.clone(),
-            "episode_length": torch.as_tensor(length),
-            "episode_seed": torch.as_tensor(seeds if seeds is not None else [-1] * n, dtype=torch.int64),
+            "episode_success": torch.as_tensor(success[rows]), "episode_task": task_ids[rows].clone(),
+            "episode_length": torch.as_tensor(length[rows]), "episode_seed": torch.as_tensor(seed_of, dtype=torch.int64),
         }
         if record is None:
             return Batch(**episodes, **_empty_tables(raw, horizon, action_dim))

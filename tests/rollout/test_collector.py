@@ -133,3 +133,34 @@ def test_collect_plays_whole_waves_and_resumes_its_streams_exactly():
     again = collector.collect(policy, 5, spec)
     assert torch.equal(first.x_next, again.x_next) and torch.equal(first.obs["state"], again.obs["state"])
     venv.close()
+
+
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_episodes_per_task_leave_the_other_sub_envs_idle(num_workers):
+    venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=8, num_workers=num_workers)
+    torch.manual_seed(0)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    collector = Collector(venv, torch.Generator().manual_seed(0))
+    rng_before = venv.rng_state()
+    batch = collector.collect(policy, 0, RolloutSpec(0.3), task_episodes=[3, 0])
+    assert batch.episode_task.tolist() == [0, 0, 0] and batch.env_steps == 3 * 8
+    assert (batch.obs["task"] == 0).all() and batch.num_calls == 3 * 2
+    # The push sub-envs never simulated: their RNG streams did not move.
+    assert venv.rng_state()[2:] == rng_before[2:] and venv.rng_state()[:2] != rng_before[:2]
+    venv.close()
+
+
+def test_groups_start_from_one_initial_state():
+    venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 4, n_exec=4, max_episode_steps=4)
+    torch.manual_seed(0)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    collector = Collector(venv, torch.Generator().manual_seed(0))
+    batch = collector.collect(policy, 8, RolloutSpec(0.3, group_size=2))
+    seeds = batch.episode_seed.tolist()
+    assert seeds[0] == seeds[1] != seeds[2] == seeds[3] and min(seeds) >= 2**24
+    first_obs = batch.obs["state"][batch.done.new_zeros(batch.num_calls, dtype=torch.bool).index_fill(
+        0, torch.tensor([0, 1]), True)]
+    torch.testing.assert_close(first_obs[0], first_obs[1])  # the first call of each sub-env of the group
+    with pytest.raises(ValueError, match="groups of 3"):
+        collector.collect(policy, 8, RolloutSpec(0.3, group_size=3))
+    venv.close()

@@ -112,7 +112,13 @@ class MetaWorldChunkEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Starts an episode; with `seed`, its initial state depends only on (task, seed)."""
+        """Starts an episode; with `seed`, its initial state depends only on (task, seed).
+        ``options={"idle": True}``: sit this wave out (see ``stepnft.envs.base``)."""
+        if options and options.get("idle"):
+            if self._state is None:
+                self._state = np.zeros(OBS_DIM, dtype=np.float32)
+            self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, True
+            return self._obs(), self._info(steps=0)
         super().reset(seed=seed)
         # MetaWorld draws this episode's object and goal positions from our generator.
         self._sim.np_random = self.np_random
