@@ -51,8 +51,8 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
     waves = math.ceil(episodes / per_task)
     for w in range(waves):
         episode = w * per_task + slot
-        wave = collector.play_wave(policy, 0.0, torch.Generator().manual_seed(seed * 100_003 + w),
-                                   seeds=[int(seed + e) for e in episode])
+        seeds = [int(seed + e) for e in episode]
+        wave = collector.play_wave(policy, 0.0, episode_generators(seeds), seeds=seeds)
         valid = episode < episodes
         np.add.at(successes, task_ids[valid], wave.episode_success.numpy()[valid])
         np.add.at(counts, task_ids[valid], 1)
@@ -66,6 +66,12 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
                        "episodes": int(counts[k]), "ci95": [lo, hi]}
     return {"tasks": tasks, "average": float(np.mean([v["success"] for v in tasks.values()])),
             "episodes": episodes, "env_steps": env_steps}
+
+
+def episode_generators(seeds: list[int]) -> list[torch.Generator]:
+    """The sampler generator of each evaluation episode, seeded by its initial-state seed: an
+    episode's outcome depends only on the policy and that seed, not on the env layout."""
+    return [torch.Generator().manual_seed(s) for s in seeds]
 
 
 def format_table(before: dict | None, after: dict) -> str:
@@ -95,8 +101,8 @@ def record_videos(
 ) -> list[Path]:
     """Film ODE episodes as ``out_dir/<task>_ep<e>_<success|fail>.mp4``; returns the paths.
 
-    Episode ``e`` of a task starts from evaluation initial state ``seed + e``; its sampler noise
-    is its own, so its outcome may differ from that episode's in :func:`evaluate_policy`. A
+    Episode ``e`` of a task starts from evaluation initial state ``seed + e`` with the sampler
+    noise of that episode in :func:`evaluate_policy`. A
     frame at reset and one after every env step (the chunk's actions are played one at a
     time), at the simulator's real-time rate. ``policy.processor`` must be bound to ``tasks``'
     instructions, in order. Raises :class:`~stepnft.envs.base.RenderingError` without
@@ -113,8 +119,7 @@ def record_videos(
         env = simulator.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, render_size=size)
         try:
             for e in range(episodes):
-                generator = torch.Generator().manual_seed(seed * 100_003 + e)
-                frames, success = _play_filmed(policy, env, k, seed + e, generator)
+                frames, success = _play_filmed(policy, env, k, seed + e, episode_generators([seed + e])[0])
                 outcome = "success" if success else "fail"
                 path = out_dir / f"{task}_ep{e}_{outcome}.mp4"
                 tmp = out_dir / f".{path.stem}.tmp.mp4"

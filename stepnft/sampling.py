@@ -8,7 +8,7 @@ A chunk is denoised over ``K`` steps on the grid ``t_k = 1 - k / K``; step ``k``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -97,13 +97,30 @@ class ChunkSample:
         }
 
 
+Generators = torch.Generator | Sequence[torch.Generator] | None
+"""One generator for the whole batch, or one per row (a row's draws then depend only on its
+own generator: the same sample whatever the batch it is drawn in)."""
+
+
+def _randn(shape: tuple[int, ...], generator: Generators) -> Tensor:
+    if generator is None or isinstance(generator, torch.Generator):
+        return torch.randn(shape, generator=generator)
+    return torch.stack([torch.randn(shape[1:], generator=g) for g in generator])
+
+
+def _randint(high: int, batch: int, generator: Generators) -> Tensor:
+    if generator is None or isinstance(generator, torch.Generator):
+        return torch.randint(0, high, (batch,), generator=generator)
+    return torch.cat([torch.randint(0, high, (1,), generator=g) for g in generator])
+
+
 @torch.no_grad()
 def sample_chunk(
     velocity_fn: VelocityFn,
     shape: tuple[int, int, int],
     num_steps: int = 4,
     noise_level: float = 0.0,
-    generator: torch.Generator | None = None,
+    generator: Generators = None,
     stochastic_steps: str = "all",
     device: torch.device | str = "cpu",
     keep_path: bool = False,
@@ -114,13 +131,14 @@ def sample_chunk(
     (exploration). One step index ``j ~ Uniform{0..K-1}`` per sample is recorded.
     ``stochastic_steps``: ``"all"`` makes every step stochastic (π-StepNFT), ``"one"`` only
     the recorded step, the rest ODE (πRL's PPO/GRPO likelihood). ``keep_path`` also
-    returns every intermediate chunk and velocity (``path_x``, ``path_v``).
+    returns every intermediate chunk and velocity (``path_x``, ``path_v``). ``generator`` may
+    be one per row of the batch.
     """
     if stochastic_steps not in ("all", "one"):
         raise ValueError(f"stochastic_steps must be 'all' or 'one', got {stochastic_steps!r}")
     batch = shape[0]
-    x = torch.randn(shape, generator=generator).to(device)
-    step = torch.randint(0, num_steps, (batch,), generator=generator).to(device)
+    x = _randn(shape, generator).to(device)
+    step = _randint(num_steps, batch, generator).to(device)
     dt = torch.full((batch,), 1.0 / num_steps, device=device)
     rec = {k: torch.zeros(shape, device=device) for k in ("x_t", "x_next", "v_old")}
     t_rec = torch.zeros(batch, device=device)
@@ -133,7 +151,7 @@ def sample_chunk(
         if stochastic_steps == "one":  # the other steps are plain Euler steps
             ode_mean, _ = sde_step_mean_std(x, v, t, dt, 0.0)
             mean, std = torch.where(here, mean, ode_mean), std * here.float()
-        x_next = mean + std * torch.randn(shape, generator=generator).to(device)
+        x_next = mean + std * _randn(shape, generator).to(device)
         rec["x_t"] = torch.where(here, x, rec["x_t"])
         rec["x_next"] = torch.where(here, x_next, rec["x_next"])
         rec["v_old"] = torch.where(here, v, rec["v_old"])

@@ -42,9 +42,10 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             policy = _initial_policy(cfg, sim, tasks, run_dir, log)
             policy.save_pretrained(run_dir / "sft_policy")
         policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
-        algo = make_algorithm(cfg.algo, policy, cfg.iterations, collector.generator)
+        algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
         if resume:
             algo.load_state_dict(state["algorithm"])
+            algo.generator.set_state(state["algorithm_generator"])
             collector.load_state_dict(state["collector"])
             torch.set_rng_state(state["torch_rng"])
             start, env_steps, before = state["iteration"], state["env_steps"], state["before"]
@@ -87,6 +88,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             if iteration % cfg.checkpoint_every == 0 or last:
                 save_checkpoint(run_dir, iteration, policy, {
                     "env_steps": env_steps, "before": before, "algorithm": algo.state_dict(),
+                    "algorithm_generator": algo.generator.get_state(),
                     "collector": collector.state_dict(), "torch_rng": torch.get_rng_state()})
             if last:
                 break
@@ -137,7 +139,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
     venv = make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed)
-    collector = Collector(venv, torch.Generator().manual_seed(cfg.seed))
+    collector = Collector(venv, seed=cfg.seed)
     stack.callback(collector.close)
     return run_dir, sim, tasks, collector
 

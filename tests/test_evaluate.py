@@ -70,10 +70,16 @@ def test_evaluation_depends_only_on_the_policy_and_the_eval_seed():
     assert 0 < first["tasks"]["reach-v3"]["successes"] < 5, "the check below needs mixed outcomes"
 
     # A training wave moves the env streams.
-    Collector(venv).play_wave(policy, 0.2, torch.Generator().manual_seed(1), record=RolloutSpec(0.2))
+    collector = Collector(venv, seed=1)
+    collector.play_wave(policy, 0.2, collector.env_generators, record=RolloutSpec(0.2))
     again = evaluate_policy(policy, venv, episodes=5, seed=3)
     other_venv = make_metaworld_vec_env(["reach-v3"], 2, max_episode_steps=36, seed=12345)
     fresh = evaluate_policy(policy, other_venv, episodes=5, seed=3)
+    # Each episode's outcome depends on its seed alone: another layout gives the same result.
+    wide_venv = make_metaworld_vec_env(["reach-v3"], 5, max_episode_steps=36, seed=7)
+    wide = evaluate_policy(policy, wide_venv, episodes=5, seed=3)
+    assert wide["tasks"] == first["tasks"]  # (env_steps differ: the 2-env layout plays a spare episode)
+    wide_venv.close()
     assert first == again == fresh
     assert "reach-v3" in format_table(first, fresh)
     venv.close()

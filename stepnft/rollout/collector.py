@@ -24,12 +24,21 @@ from stepnft.batch import Batch
 from stepnft.policies.base import Policy
 
 
-class Collector:
-    """Owns a chunk vector env and the sampler's random generator."""
+def sub_env_generators(seed: int, num_envs: int) -> tuple[torch.Generator, list[torch.Generator]]:
+    """The collector's own generator (group seeds) and one sampler generator per sub-env, all
+    derived from ``seed``: sub-env ``i``'s noise depends only on ``(seed, i)``, so any split of
+    the sub-envs over workers draws the same episodes."""
+    streams = np.random.SeedSequence(seed).spawn(num_envs + 1)
+    gens = [torch.Generator().manual_seed(int(s.generate_state(1, np.uint64)[0] >> np.uint64(1))) for s in streams]
+    return gens[0], gens[1:]
 
-    def __init__(self, venv, generator: torch.Generator | None = None):
+
+class Collector:
+    """Owns a chunk vector env and the sampler's random generators (one per sub-env)."""
+
+    def __init__(self, venv, seed: int = 0):
         self.venv = venv
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.generator, self.env_generators = sub_env_generators(seed, venv.num_envs)
 
     @property
     def num_envs(self) -> int:
@@ -43,7 +52,7 @@ class Collector:
             waves = [None] * math.ceil(episodes / self.num_envs)
         else:
             waves = self._wave_masks(task_episodes, spec.group_size)
-        return Batch.concat([self.play_wave(policy, spec.noise_level, self.generator, record=spec, active=active)
+        return Batch.concat([self.play_wave(policy, spec.noise_level, self.env_generators, record=spec, active=active)
                              for active in waves])
 
     def _wave_masks(self, task_episodes: list[int], group_size: int) -> list[np.ndarray]:
@@ -75,12 +84,13 @@ class Collector:
                     seeds[i] = seed
         return seeds
 
-    def play_wave(self, policy: Policy, noise_level: float, generator: torch.Generator,
+    def play_wave(self, policy: Policy, noise_level: float, generators: list[torch.Generator],
                   seeds: list[int] | None = None, record: RolloutSpec | None = None,
                   active: np.ndarray | None = None) -> Batch:
         """Every sub-env in ``active`` (default: all) plays one episode from
-        ``reset(seed=seeds)``; the others sit the wave out. With ``record`` the batch holds the
-        policy calls and recorded denoising steps, else only the episode table."""
+        ``reset(seed=seeds)``, sub-env ``i`` sampling with ``generators[i]``; the others sit the
+        wave out. With ``record`` the batch holds the policy calls and recorded denoising
+        steps, else only the episode table."""
         venv, n = self.venv, self.venv.num_envs
         horizon, action_dim = policy.chunk_shape
         n_exec = policy.config.n_exec
@@ -105,7 +115,8 @@ class Collector:
         while not done.all():
             playing = np.flatnonzero(~done)
             obs = {k: torch.as_tensor(v[playing]) for k, v in raw.items()} | {"task": task_ids[playing]}
-            sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=generator,
+            sample = policy.sample(policy.processor(obs), noise_level=noise_level,
+                                   generator=[generators[i] for i in playing],
                                    stochastic_steps=stochastic_steps, keep_path=keep_path)
             chunk = np.zeros((n, n_exec, action_dim), dtype=np.float32)
             chunk[playing] = sample.actions[:, :n_exec].clamp(-1.0, 1.0).numpy()
@@ -146,12 +157,15 @@ class Collector:
         )
 
     def state_dict(self) -> dict:
-        """The sub-envs' RNG states and the sampler's generator: enough to resume exactly."""
-        return {"env_rng": self.venv.rng_state(), "generator": self.generator.get_state()}
+        """The sub-envs' RNG states and the generators: enough to resume exactly."""
+        return {"env_rng": self.venv.rng_state(), "generator": self.generator.get_state(),
+                "env_generators": [g.get_state() for g in self.env_generators]}
 
     def load_state_dict(self, state: dict) -> None:
         self.venv.set_rng_state(state["env_rng"])
         self.generator.set_state(state["generator"])
+        for g, g_state in zip(self.env_generators, state["env_generators"], strict=True):
+            g.set_state(g_state)
 
     def close(self) -> None:
         self.venv.close()

@@ -45,8 +45,8 @@ def wave_and_steps():
     infos = []
     step = venv.step
     venv.step = lambda actions: (out := step(actions), infos.append(out[4]))[0]
-    batch = Collector(venv).play_wave(policy, 0.2, torch.Generator().manual_seed(0), seeds=seeds,
-                                      record=RolloutSpec(0.2))
+    collector = Collector(venv, seed=0)
+    batch = collector.play_wave(policy, 0.2, collector.env_generators, seeds=seeds, record=RolloutSpec(0.2))
     venv.close()
     return batch, infos, seeker
 
@@ -102,9 +102,9 @@ def test_record_all_steps_stores_k_transitions_per_call_and_each_observation_onc
     venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=12)
     torch.manual_seed(0)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, horizon=4, n_exec=4))
-    collector = Collector(venv, torch.Generator().manual_seed(0))
-    one = collector.play_wave(policy, 0.3, collector.generator, seeds=[0, 1], record=RolloutSpec(0.3))
-    every = collector.play_wave(policy, 0.3, collector.generator, seeds=[0, 1],
+    collector = Collector(venv, seed=0)
+    one = collector.play_wave(policy, 0.3, collector.env_generators, seeds=[0, 1], record=RolloutSpec(0.3))
+    every = collector.play_wave(policy, 0.3, collector.env_generators, seeds=[0, 1],
                                 record=RolloutSpec(0.3, record_steps="all"))
     k = policy.config.num_inference_steps
     assert every.num_calls == one.num_calls == 6 and every.num_steps == k * one.num_steps == k * 6
@@ -119,11 +119,30 @@ def test_record_all_steps_stores_k_transitions_per_call_and_each_observation_onc
     venv.close()
 
 
+def test_a_sub_env_draws_the_same_episode_whatever_else_plays():
+    """Each sub-env samples from its own generator: splitting the sub-envs (over waves or
+    workers) does not change any episode (the seam a remote collector relies on)."""
+    venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=8)
+    torch.manual_seed(0)
+    policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
+    spec, seeds = RolloutSpec(0.3), [5, 6, 7, 8]
+    whole = Collector(venv, seed=3).play_wave(policy, 0.3, Collector(venv, seed=3).env_generators, seeds=seeds,
+                                             record=spec)
+    split = Collector(venv, seed=3)
+    parts = [split.play_wave(policy, 0.3, split.env_generators, seeds=seeds, record=spec, active=np.arange(4) % 2 == r)
+             for r in (0, 1)]
+    for r, part in enumerate(parts):
+        mine = torch.isin(whole.episode, torch.arange(r, 4, 2))
+        torch.testing.assert_close(part.actions, whole.actions[mine])
+        assert part.episode_success.tolist() == whole.episode_success[r::2].tolist()
+    venv.close()
+
+
 def test_collect_plays_whole_waves_and_resumes_its_streams_exactly():
     venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=8)
     torch.manual_seed(0)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
-    collector = Collector(venv, torch.Generator().manual_seed(0))
+    collector = Collector(venv, seed=0)
     spec = RolloutSpec(0.3)
     state = collector.state_dict()
     first = collector.collect(policy, 5, spec)  # 5 episodes on 4 envs: two waves
@@ -140,7 +159,7 @@ def test_episodes_per_task_leave_the_other_sub_envs_idle(num_workers):
     venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=8, num_workers=num_workers)
     torch.manual_seed(0)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
-    collector = Collector(venv, torch.Generator().manual_seed(0))
+    collector = Collector(venv, seed=0)
     rng_before = venv.rng_state()
     batch = collector.collect(policy, 0, RolloutSpec(0.3), task_episodes=[3, 0])
     assert batch.episode_task.tolist() == [0, 0, 0] and batch.env_steps == 3 * 8
@@ -154,7 +173,7 @@ def test_groups_start_from_one_initial_state():
     venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 4, n_exec=4, max_episode_steps=4)
     torch.manual_seed(0)
     policy = FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1))
-    collector = Collector(venv, torch.Generator().manual_seed(0))
+    collector = Collector(venv, seed=0)
     batch = collector.collect(policy, 8, RolloutSpec(0.3, group_size=2))
     seeds = batch.episode_seed.tolist()
     assert seeds[0] == seeds[1] != seeds[2] == seeds[3] and min(seeds) >= 2**24
