@@ -163,7 +163,7 @@ def cmd_demos(argv: list[str]) -> int:
     from stepnft.config import DemosCommand
 
     args = _parse(DemosCommand, _translate_legacy(argv, "demos"), DemosCommand(), "stepnft demos")
-    sim = get_simulator(args.env.name)
+    sim = get_simulator(args.env.name, args.env.options)
     tasks = sim.validate_tasks(args.env.tasks)
     _writable_dir(args.demos.path, "--demos.path")
     path = generate_demos(tasks, args.demos.episodes, args.demos.path, seed=args.demos.seed,
@@ -201,7 +201,7 @@ def cmd_eval(argv: list[str]) -> int:
     from stepnft.config import EvalCommand
 
     args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
-    sim = get_simulator(args.env.name)
+    sim = get_simulator(args.env.name, args.env.options)
     tasks = sim.validate_tasks(args.env.tasks)
     policy = load_policy(args.policy)
     # Fail on an unwritable output before spending time on episodes.

@@ -29,7 +29,8 @@ class EnvConfig:
     """Which simulator and tasks run, and how."""
 
     name: str = "metaworld"
-    """Simulator: metaworld (MetaWorld v3, the default) or bandit (a toy for tests)."""
+    """Simulator: metaworld (MetaWorld v3, the default), bandit (a toy for tests) or libero
+    (LIBERO, the optional extra stepnft[libero]; docs/libero.md)."""
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """Task names (space- or comma-separated); one multi-task policy serves all of them."""
     envs_per_task: int = 4
@@ -41,6 +42,9 @@ class EnvConfig:
     num_workers: int = 0
     """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
     cores of a 2-core machine)."""
+    options: dict[str, int] = field(default_factory=dict)
+    """The simulator's own settings as name value pairs (LIBERO: image_size 128, wrist_camera 0,
+    shadows 1, settle_steps 10; docs/libero.md)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.tasks, str):

@@ -128,7 +128,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
     """What ``sft`` and ``train`` start with: checked tasks, a run folder that is free (or holds
     the run to resume), seeds and threads, and a collector over the vector env (closed with
     ``stack`` on every exit path). Returns ``(run_dir, simulator, tasks, collector)``."""
-    sim = get_simulator(cfg.env.name)
+    sim = get_simulator(cfg.env.name, cfg.env.options)
     tasks = sim.validate_tasks(cfg.env.tasks)
     if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
         raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "

@@ -89,14 +89,14 @@ def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: 
     from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
 
     path = Path(demos_cfg.path)
-    if not (path / "manifest.json").is_file():
+    if not (path / "manifest.json").is_file() and not simulator.has_dataset(path):
         count = max(demos_cfg.count(t) for t in tasks)
         log(f"generating {count} demonstrations per task into {path}")
         generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
                        max_episode_steps=max_episode_steps, simulator=simulator, max_attempts=demos_cfg.max_attempts,
                        successful_only=demos_cfg.successful_only)
     keep = (lambda e: e.success) if demos_cfg.successful_only else (lambda e: True)  # noqa: E731
-    episodes = [e for e in load_demos(path) if e.task in tasks and keep(e)]
+    episodes = [e for e in load_demos(path, simulator) if e.task in tasks and keep(e)]
     per_task = {t: [e for e in episodes if e.task == t][: demos_cfg.count(t)] for t in tasks}
     short = [t for t, eps in per_task.items() if len(eps) < demos_cfg.count(t)]
     if short:

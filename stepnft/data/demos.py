@@ -67,6 +67,9 @@ class DemoEpisode:
     """bool [T]"""
     success: bool
     seed: int
+    images: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    """Camera frames by observation key, uint8 [T+1, H, W, 3] (only from datasets loaded with
+    images, e.g. a simulator's own formats: see :meth:`~stepnft.envs.base.Simulator.load_dataset`)."""
 
 
 def demo_seed(seed: int, episode: int) -> int:
@@ -195,10 +198,14 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
     )
 
 
-def load_demos(path: str | Path) -> list[DemoEpisode]:
-    """Loads every episode listed in `path/manifest.json`, in manifest order."""
+def load_demos(path: str | Path, simulator=None, images: bool = False) -> list[DemoEpisode]:
+    """Loads every episode listed in `path/manifest.json`, in manifest order; without a manifest,
+    the demonstrations in `simulator`'s own format(s) there (e.g. LIBERO's HDF5 files), with
+    their camera frames if `images`."""
     path = Path(path)
     manifest_path = path / "manifest.json"
+    if not manifest_path.is_file() and simulator is not None and simulator.has_dataset(path):
+        return simulator.load_dataset(path, images=images)
     if not manifest_path.is_file():
         raise FileNotFoundError(
             f"no demonstrations at {path}: run `stepnft demos --demos.path {path}` first"
@@ -262,7 +269,8 @@ def demos_to_chunks(
 
     Returns N samples:
         obs      {"state": float32 [N, S] observations[t],
-                  "task": int64 [N] index of the episode's task in `tasks`}
+                  "task": int64 [N] index of the episode's task in `tasks`,
+                  and each camera key every episode has: uint8 [N, H, W, 3]}
         actions  float32 [N, H, A]  actions[t : t+H], past the episode's end repeating its
                                     last action
         mask     bool    [N, H]     False on those repeated (padded) positions
@@ -271,9 +279,10 @@ def demos_to_chunks(
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     task_index = {task: i for i, task in enumerate(tasks)}
     states, task_ids, chunks, masks = [], [], [], []
+    episodes = [e for e in episodes if e.success or not only_successful]
+    cameras = set.intersection(*(set(e.images) for e in episodes)) if episodes else set()
+    frames = {key: [] for key in sorted(cameras)}
     for episode in episodes:
-        if only_successful and not episode.success:
-            continue
         if episode.task not in task_index:
             raise ValueError(f"demonstration task {episode.task!r} is not in tasks {list(tasks)}")
         length = len(episode.actions)
@@ -283,12 +292,15 @@ def demos_to_chunks(
         task_ids.append(np.full(length, task_index[episode.task], dtype=np.int64))
         chunks.append(episode.actions[np.minimum(steps, length - 1)])
         masks.append(steps < length)
+        for key in frames:
+            frames[key].append(episode.images[key][:length])
     if not states:
         kind = "successful " if only_successful else ""
         raise ValueError(f"no {kind}demonstrations to build chunks from")
     return {
         "obs": {"state": torch.from_numpy(np.concatenate(states).astype(np.float32)),
-                "task": torch.from_numpy(np.concatenate(task_ids))},
+                "task": torch.from_numpy(np.concatenate(task_ids)),
+                **{key: torch.from_numpy(np.concatenate(v)) for key, v in frames.items()}},
         "actions": torch.from_numpy(np.concatenate(chunks).astype(np.float32)),
         "mask": torch.from_numpy(np.concatenate(masks)),
     }

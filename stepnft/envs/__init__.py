@@ -28,21 +28,30 @@ DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer
 SIMULATORS: dict[str, SimulatorInfo] = {
     "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",)),
+    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",)),
 }
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
 
 
-def get_simulator(name: str):
-    """The :class:`~stepnft.envs.base.Simulator` registered as ``name``."""
+def get_simulator(name: str, options: dict | None = None):
+    """The :class:`~stepnft.envs.base.Simulator` registered as ``name``, built with ``options``
+    (``env.options``). A simulator whose optional extra is missing is a ValueError saying so."""
     if name not in SIMULATORS:
         raise ValueError(f"unknown simulator {name!r}; choose one of: {', '.join(SIMULATORS)}")
     module, cls = SIMULATORS[name].target.split(":")
-    return getattr(importlib.import_module(module), cls)()
+    try:
+        module = importlib.import_module(module)
+    except ImportError as err:  # an optional extra (e.g. stepnft[libero]) that is not installed
+        raise ValueError(str(err)) from err
+    try:
+        return getattr(module, cls)(**(options or {}))
+    except TypeError as err:  # an option the simulator does not have
+        raise ValueError(f"env.options for {name}: {err}") from err
 
 
 def make_vec_env(env_cfg, n_exec: int, seed: int):
     """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
     ``n_exec`` actions; sub-env streams seeded from ``seed``."""
-    return get_simulator(env_cfg.name).make_vec_env(
+    return get_simulator(env_cfg.name, env_cfg.options).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
         terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers)

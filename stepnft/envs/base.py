@@ -58,6 +58,11 @@ class Simulator(ABC):
     control_hz: ClassVar[float]
     """Env steps per simulated second (the frame rate of videos)."""
 
+    def __init__(self, **options: int):
+        """``options``: the simulator's own settings (``env.options``); none unless it declares some."""
+        if options:
+            raise ValueError(f"{self.label} takes no env.options, got: {', '.join(options)}")
+
     @abstractmethod
     def task_names(self) -> list[str]:
         """Every task this simulator offers."""
@@ -75,6 +80,15 @@ class Simulator(ABC):
     @abstractmethod
     def expert(self, task: str, seed: int) -> Expert:
         """A scripted demonstrator for ``task`` (its own randomness seeded by ``seed``)."""
+
+    def has_dataset(self, path) -> bool:
+        """Whether ``path`` holds demonstrations in one of this simulator's own published formats."""
+        return False
+
+    def load_dataset(self, path, images: bool = False) -> list:
+        """The demonstrations at ``path`` (see :meth:`has_dataset`) as
+        :class:`stepnft.data.demos.DemoEpisode`\ s; ``images`` also loads their camera frames."""
+        raise ValueError(f"{self.label} reads no demonstration format of its own: give a stepnft demos folder")
 
     def validate_tasks(self, tasks: str | Sequence[str]) -> list[str]:
         """Checks task names; ``tasks`` is a list or a comma-separated string."""

@@ -1,0 +1,246 @@
+"""LIBERO demonstrations from disk: LIBERO's published HDF5 files and LeRobot-format datasets.
+
+Both become :class:`stepnft.data.demos.DemoEpisode`\\ s for the SFT path (``demos_to_chunks``)
+with the env's ``state`` (8-d: end-effector position, axis-angle orientation, gripper finger
+positions), 7-d actions and the task's instruction as the simulator defines it; with
+``images=True`` also ``image`` (agentview) and ``wrist_image`` frames, upright as the env gives
+them. A demonstration of T actions gets T + 1 observations: the last one repeated (the files
+hold one observation per action).
+
+**LIBERO HDF5** (robomimic-style, one file per task, ``<suite>/<task>_demo.hdf5``)::
+
+    data.attrs: "problem_info" (JSON with "language_instruction"), "bddl_file_name", "env_args", ...
+    data/demo_<k>/actions           float [T, 7]
+    data/demo_<k>/obs/ee_pos        float [T, 3]    (or ee_states [T, 6]: position + axis-angle)
+    data/demo_<k>/obs/ee_ori        float [T, 3]
+    data/demo_<k>/obs/gripper_states  float [T, 2]
+    data/demo_<k>/obs/agentview_rgb, eye_in_hand_rgb   uint8 [T, H, W, 3] (robosuite's raw frames)
+    data/demo_<k>/rewards, dones    [T] (optional: the published files hold only successes)
+    data/demo_<k>/states            float [T, D] flattened MuJoCo states (not needed here)
+
+The task is the file's BDDL name (``bddl_file_name`` without ``.bddl``, else the file name
+without ``_demo.hdf5``). ``path`` is one file or a folder searched recursively (e.g. LIBERO's
+``datasets`` folder with one subfolder per suite).
+
+**LeRobot** (a dataset folder: ``meta/info.json`` with ``codebase_version`` v2.x or v3.0, frames
+in ``data/**/*.parquet``, tasks in ``meta/tasks.jsonl`` (v2) or ``meta/tasks.parquet`` (v3)).
+Columns read: ``observation.state`` (or ``state``) [8], ``action`` (or ``actions``) [7],
+``episode_index``, ``frame_index``, ``task_index``; images from parquet image columns
+``observation.images.image`` / ``observation.images.wrist_image`` (or ``image`` /
+``wrist_image``), stored as encoded PNG/JPEG bytes (LeRobot's ``image`` feature type). Videos
+(the ``video`` feature type) are not decoded: load such a dataset without images. The episode's
+task is found by its instruction (the benchmark's or the BDDL file's wording; case and a final
+period ignored); its instruction then is the benchmark's, like every LIBERO episode here.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from stepnft.data.demos import DemoEpisode
+from stepnft.envs.libero.suites import all_tasks
+
+HDF5_SUFFIXES = (".hdf5", ".h5")
+LEROBOT_STATE_KEYS = ("observation.state", "state")
+LEROBOT_ACTION_KEYS = ("action", "actions")
+LEROBOT_IMAGE_KEYS = {"image": ("observation.images.image", "image"),
+                      "wrist_image": ("observation.images.wrist_image", "wrist_image")}
+
+
+def dataset_format(path: Path) -> str | None:
+    """``"hdf5"``, ``"lerobot"`` or None: which LIBERO demonstration format ``path`` holds."""
+    if (path / "meta" / "info.json").is_file():
+        return "lerobot"
+    if path.is_file() and path.suffix in HDF5_SUFFIXES:
+        return "hdf5"
+    if path.is_dir() and any(p.suffix in HDF5_SUFFIXES for p in path.rglob("*")):
+        return "hdf5"
+    return None
+
+
+def load_dataset(path: Path, images: bool = False) -> list[DemoEpisode]:
+    """Every demonstration at ``path`` (either format), file by file, demo by demo."""
+    kind = dataset_format(path)
+    if kind is None:
+        raise FileNotFoundError(f"no LIBERO demonstrations at {path}: expected *.hdf5 files or a LeRobot dataset "
+                                "(meta/info.json); docs/libero.md says where to get them")
+    try:
+        return load_hdf5(path, images) if kind == "hdf5" else load_lerobot(path, images)
+    except (KeyError, TypeError, IndexError) as err:  # a file in another layout
+        raise ValueError(f"{path} is not a LIBERO {kind} dataset ({type(err).__name__}: {err}); "
+                         "docs/libero.md describes the layout read") from err
+
+
+def _episode(task: str, state: np.ndarray, actions: np.ndarray, successes: np.ndarray, seed: int,
+             images: dict[str, np.ndarray]) -> DemoEpisode:
+    if len(actions) == 0 or len(state) != len(actions):
+        raise ValueError(f"a demonstration of {task} has {len(actions)} actions and {len(state)} observations")
+    successes = np.maximum.accumulate(np.asarray(successes, dtype=bool))
+    return DemoEpisode(
+        task=task, instruction=all_tasks()[task].instruction,
+        observations=np.concatenate([state, state[-1:]]).astype(np.float32),
+        actions=np.asarray(actions, dtype=np.float32), rewards=successes.astype(np.float32),
+        successes=successes, success=bool(successes[-1]), seed=seed,
+        images={k: np.concatenate([v, v[-1:]]) for k, v in images.items()})
+
+
+def _task_of(name: str, where: str) -> str:
+    if name not in all_tasks():
+        raise ValueError(f"{where}: {name!r} is not a task of LIBERO's suites")
+    return name
+
+
+# ----------------------------------------------------------------------------- LIBERO HDF5
+
+def load_hdf5(path: Path, images: bool = False) -> list[DemoEpisode]:
+    """The demonstrations of one LIBERO HDF5 file, or of every such file under a folder."""
+    import h5py
+
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.suffix in HDF5_SUFFIXES)
+    episodes = []
+    for file in files:
+        with h5py.File(file, "r") as f:
+            data = f["data"]
+            bddl = data.attrs.get("bddl_file_name")
+            name = Path(bddl).stem if bddl else re.sub(r"_demo$", "", file.stem)
+            task = _task_of(name, str(file))
+            for key in sorted(data, key=lambda k: int(k.rsplit("_", 1)[-1])):
+                demo = data[key]
+                obs = demo["obs"]
+                pose = obs["ee_states"][()] if "ee_states" in obs else np.concatenate([obs["ee_pos"], obs["ee_ori"]], 1)
+                state = np.concatenate([pose, obs["gripper_states"]], axis=1)
+                actions = demo["actions"][()]
+                # The published files hold only successful demonstrations.
+                successes = demo["dones"][()] if "dones" in demo else np.arange(len(actions)) == len(actions) - 1
+                frames = {}
+                if images:  # robosuite's raw frames are rotated by 180 degrees; the env's are upright
+                    frames = {k: obs[src][()][:, ::-1, ::-1] for k, src in
+                              (("image", "agentview_rgb"), ("wrist_image", "eye_in_hand_rgb")) if src in obs}
+                episodes.append(_episode(task, state, actions, successes, int(key.rsplit("_", 1)[-1]), frames))
+    return episodes
+
+
+def write_hdf5(path: Path, task: str, demos: list[dict[str, np.ndarray]]) -> None:
+    """Write demonstrations of ``task`` as one LIBERO HDF5 file (the layout in the module doc).
+
+    Each demo maps LIBERO's per-step keys to arrays of T rows: ``actions``, ``states`` and the
+    observations ``ee_pos``, ``ee_ori``, ``gripper_states``, ``joint_states`` and, if present,
+    ``agentview_rgb`` / ``eye_in_hand_rgb`` (robosuite's raw frames); ``ee_states``, rewards and
+    dones (1 on the last step) are derived as LIBERO's own dataset script does.
+    """
+    import h5py
+
+    info = all_tasks()[task]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with h5py.File(tmp, "w") as f:
+        data = f.create_group("data")
+        data.attrs["problem_info"] = json.dumps({"problem_name": "libero", "domain_name": "robosuite",
+                                                 "language_instruction": info.instruction})
+        data.attrs["bddl_file_name"] = info.bddl_file
+        data.attrs["env_name"] = "libero"
+        data.attrs["env_args"] = json.dumps({"type": 1, "env_name": "libero", "bddl_file": info.bddl_file,
+                                             "env_kwargs": {"control_freq": 20, "camera_heights": 128,
+                                                            "camera_widths": 128}})
+        data.attrs["macros_image_convention"] = "opengl"
+        for k, demo in enumerate(demos):
+            group = data.create_group(f"demo_{k}")
+            length = len(demo["actions"])
+            obs = group.create_group("obs")
+            for key in ("ee_pos", "ee_ori", "gripper_states", "joint_states", "agentview_rgb", "eye_in_hand_rgb"):
+                if key in demo:
+                    obs.create_dataset(key, data=demo[key])
+            obs.create_dataset("ee_states", data=np.concatenate([demo["ee_pos"], demo["ee_ori"]], axis=1))
+            group.create_dataset("actions", data=demo["actions"])
+            group.create_dataset("states", data=demo["states"])
+            ends = (np.arange(length) == length - 1).astype(np.uint8)
+            group.create_dataset("rewards", data=ends)
+            group.create_dataset("dones", data=ends)
+            group.attrs["num_samples"] = length
+            group.attrs["init_state"] = demo["states"][0]
+    tmp.replace(path)
+
+
+# ----------------------------------------------------------------------------- LeRobot
+
+def _lerobot_tasks(root: Path) -> dict[int, str]:
+    """task_index -> instruction."""
+    if (root / "meta" / "tasks.jsonl").is_file():
+        rows = [json.loads(line) for line in (root / "meta" / "tasks.jsonl").read_text().splitlines() if line.strip()]
+        return {int(r["task_index"]): r["task"] for r in rows}
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(root / "meta" / "tasks.parquet").to_pydict()
+    # v3.0 keeps the instruction as the (pandas) index column, named "task" or "__index_level_0__".
+    text = table.get("task") or table.get("__index_level_0__")
+    return {int(i): t for i, t in zip(table["task_index"], text)}
+
+
+def _instruction_key(text: str) -> str:
+    return " ".join(text.lower().strip().rstrip(".").split())
+
+
+def _pick(columns, names: tuple[str, ...], what: str) -> str:
+    for name in names:
+        if name in columns:
+            return name
+    raise KeyError(f"no {what} column (tried {', '.join(names)})")
+
+
+def _decode(cell) -> np.ndarray:
+    from PIL import Image
+
+    if cell.get("bytes") is None:
+        raise ValueError(f"image stored by path only ({cell.get('path')}): images must be embedded in the parquet files")
+    return np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB"))
+
+
+def load_lerobot(root: Path, images: bool = False) -> list[DemoEpisode]:
+    """The episodes of a LeRobot dataset on disk (module doc: the subset of the format read)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    info = json.loads((root / "meta" / "info.json").read_text())
+    version = str(info.get("codebase_version", ""))
+    if not version.startswith(("v2", "v3")):
+        raise ValueError(f"{root}: LeRobot dataset version {version or '?'} is not read (v2.x and v3.0 are)")
+    files = sorted((root / "data").rglob("*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"{root}: no parquet files under data/")
+    table = pa.concat_tables([pq.read_table(f) for f in files])
+    state_key = _pick(table.column_names, LEROBOT_STATE_KEYS, "state")
+    action_key = _pick(table.column_names, LEROBOT_ACTION_KEYS, "action")
+    image_keys = {}
+    if images:
+        features = info.get("features", {})
+        for key, names in LEROBOT_IMAGE_KEYS.items():
+            found = [n for n in names if n in features or n in table.column_names]
+            if found and features.get(found[0], {}).get("dtype") == "video":
+                raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: load without images")
+            if found and found[0] in table.column_names:
+                image_keys[key] = found[0]
+    by_instruction = {_instruction_key(text): name for name, t in all_tasks().items()
+                      for text in (t.bddl_instruction(), t.instruction)}
+    instructions = _lerobot_tasks(root)
+    columns = table.to_pydict()
+    episode_ids = np.asarray(columns["episode_index"])
+    order = np.lexsort((np.asarray(columns["frame_index"]), episode_ids))
+    episodes = []
+    for episode in np.unique(episode_ids):
+        rows = order[episode_ids[order] == episode]
+        text = instructions[int(columns["task_index"][rows[0]])]
+        if _instruction_key(text) not in by_instruction:
+            raise ValueError(f"{root}: episode {episode} has instruction {text!r}, which no LIBERO task has")
+        task = by_instruction[_instruction_key(text)]
+        state = np.asarray([columns[state_key][i] for i in rows], dtype=np.float32)
+        actions = np.asarray([columns[action_key][i] for i in rows], dtype=np.float32)
+        frames = {k: np.stack([_decode(columns[col][i]) for i in rows]) for k, col in image_keys.items()}
+        # LeRobot's LIBERO datasets hold successful demonstrations only.
+        successes = np.arange(len(rows)) == len(rows) - 1
+        episodes.append(_episode(task, state, actions, successes, int(episode), frames))
+    return episodes

@@ -1,0 +1,214 @@
+"""One LIBERO task as a chunk env (see ``stepnft.envs.base`` for the contract).
+
+The scene is LIBERO's robosuite environment (``OffScreenRenderEnv``: a Panda arm with the
+OSC_POSE controller at 20 Hz) built from the task's BDDL definition; success is the task's goal
+predicate (``_check_success``), evaluated after every env step.
+
+Observations:
+    ``state``        float32 [8]: end-effector position (3), orientation as an axis-angle (3),
+                     gripper finger positions (2): the proprioception of LIBERO's datasets
+                     (``ee_pos``, ``ee_ori``, ``gripper_states``) and of LeRobot's LIBERO datasets
+    ``image``        uint8 [S, S, 3]: the ``agentview`` camera, upright (rotated 180 degrees
+                     from robosuite's raw frame, as OpenVLA and LeRobot feed it), S = ``image_size``
+    ``wrist_image``  uint8 [S, S, 3]: the eye-in-hand camera, likewise (with ``wrist_camera``)
+Cameras are rendered once per ``step`` call (after the chunk), not after every env step.
+
+Actions: float32 [n_exec, 7] in [-1, 1]: end-effector translation (3) and rotation (3) deltas,
+gripper (-1 open, +1 close), as in LIBERO's datasets.
+
+Initial states. Each task has 50 fixed initial states (LIBERO's ``.pruned_init`` files);
+``reset(seed=s)`` starts from state ``s % 50``, so evaluation episodes 0..49 are exactly LIBERO's
+evaluation protocol. An unseeded reset draws the state from the env's own stream. The scene is
+reset (its random object placement drawn from a generator seeded by the state index, then
+overwritten by the initial state), the state is set, and ``settle_steps`` no-op actions (gripper
+open) let objects settle, as the reference evaluation does; they do not count as episode steps.
+``reset(options={"init_state": flat_state})`` starts from any flattened MuJoCo state of the task
+(e.g. the first state of a recorded demonstration).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.utils import seeding
+
+from stepnft.envs.base import RenderingError
+from stepnft.envs.libero.suites import all_tasks, initial_states
+
+STATE_DIM = 8
+ACTION_DIM = 7
+CONTROL_HZ = 20
+AGENT_CAMERA = "agentview"
+WRIST_CAMERA = "robot0_eye_in_hand"
+SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
+"""Hold still with the gripper open (the reference evaluation's 'dummy action')."""
+
+
+def proprio_state(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """The 8-d ``state`` from robosuite's observation dict."""
+    from robosuite.utils.transform_utils import quat2axisangle
+
+    return np.concatenate([obs["robot0_eef_pos"], quat2axisangle(obs["robot0_eef_quat"]),
+                           obs["robot0_gripper_qpos"]]).astype(np.float32)
+
+
+class LiberoChunkEnv(gym.Env):
+    """One LIBERO task whose action is a chunk of ``n_exec`` actions, run in order (module doc).
+
+    ``step`` stops early when the task succeeds (if ``terminate_on_success``) or the episode
+    reaches its cap: ``max_episode_steps``, at most the suite's reference cap. It returns the
+    summed reward (LIBERO's sparse reward: 1 while the goal holds) and info (``success``,
+    ``steps``, ``episode_steps``). Stepping an ended episode is a no-op.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
+
+    def __init__(self, task: str, n_exec: int = 1, max_episode_steps: int = 520, terminate_on_success: bool = True,
+                 seed: int = 0, render_size: tuple[int, int] | None = None, image_size: int = 128,
+                 wrist_camera: bool = False, shadows: bool = True, settle_steps: int = 10):
+        tasks = all_tasks()
+        if task not in tasks:
+            raise ValueError(f"unknown LIBERO task {task!r}: `python -m stepnft.envs.libero` lists them")
+        if n_exec < 1 or max_episode_steps < 1 or image_size < 0 or settle_steps < 0:
+            raise ValueError(f"need n_exec >= 1, max_episode_steps >= 1, image_size >= 0 and settle_steps >= 0, got "
+                             f"{n_exec}, {max_episode_steps}, {image_size}, {settle_steps}")
+        self.task = tasks[task]
+        self.instruction = self.task.instruction
+        self.n_exec = n_exec
+        self.max_episode_steps = min(max_episode_steps, self.task.max_episode_steps)
+        self.terminate_on_success = terminate_on_success
+        self.render_size = render_size
+        self.render_mode = "rgb_array" if render_size else None
+        self.shadows, self.settle_steps = shadows, settle_steps
+        self._cameras = {}
+        if image_size:
+            self._cameras["image"] = AGENT_CAMERA
+            if wrist_camera:
+                self._cameras["wrist_image"] = WRIST_CAMERA
+        self._image_size = image_size
+        self._init_states = initial_states(task)
+
+        spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
+        spaces |= {key: gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8) for key in self._cameras}
+        self.observation_space = gym.spaces.Dict(spaces)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (n_exec, ACTION_DIM), np.float32)
+
+        from libero.libero.envs import OffScreenRenderEnv
+
+        # No robosuite camera observations (they would render every camera after every env
+        # step): the cameras are rendered here, once per call. A soft reset (hard_reset=False)
+        # keeps the compiled model instead of rebuilding it from XML (seconds) at every reset.
+        self._env = OffScreenRenderEnv(bddl_file_name=self.task.bddl_file, use_camera_obs=False,
+                                       camera_names=[AGENT_CAMERA], camera_heights=max(image_size, 1),
+                                       camera_widths=max(image_size, 1), hard_reset=False, ignore_done=True,
+                                       control_freq=CONTROL_HZ)
+        self._renderer_ready = False
+        self.np_random, _ = seeding.np_random(seed)
+        self._obs: dict[str, np.ndarray] | None = None
+        self._episode_steps = 0
+        self._success = self._terminated = self._truncated = False
+
+    @property
+    def num_initial_states(self) -> int:
+        return len(self._init_states)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Starts an episode from initial state ``seed % 50`` (see the module doc).
+        ``options={"idle": True}``: sit this wave out (see ``stepnft.envs.base``)."""
+        options = options or {}
+        if options.get("idle"):
+            if self._obs is None:
+                self._obs = {k: np.zeros(space.shape, space.dtype) for k, space in self.observation_space.items()}
+            self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, True
+            return self._copy_obs(), self._info(steps=0)
+        super().reset(seed=seed)
+        index = seed % len(self._init_states) if seed is not None else int(self.np_random.integers(len(self._init_states)))
+        state = options.get("init_state", self._init_states[index])
+        # LIBERO's reset draws object placements from numpy's global generator; the initial state
+        # overwrites them, but seed it anyway (and restore it) so nothing depends on the past.
+        global_rng = np.random.get_state()
+        np.random.seed(index)
+        try:
+            self._env.reset()
+        finally:
+            np.random.set_state(global_rng)
+        for robot in self._env.robots:  # a soft reset leaves the gripper's command ramp where it was
+            robot.gripper.current_action = np.zeros(robot.gripper.dof)
+        raw = self._env.set_init_state(np.asarray(state, dtype=np.float64))
+        for _ in range(self.settle_steps):
+            raw, _, _, _ = self._env.step(SETTLE_ACTION)
+        self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, False
+        self._obs = self._observe(raw)
+        return self._copy_obs(), self._info(steps=0)
+
+    def step(self, chunk: np.ndarray):
+        """Runs the rows of ``chunk`` [n_exec, 7] in order; see the class doc for the returns."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        chunk = np.asarray(chunk, dtype=np.float64)
+        if chunk.shape != self.action_space.shape:
+            raise ValueError(f"expected an action chunk of shape {self.action_space.shape}, got {chunk.shape}")
+        if self._terminated or self._truncated:
+            return self._copy_obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
+        reward_sum, steps = 0.0, 0
+        for action in np.clip(chunk, -1.0, 1.0):
+            raw, reward, goal_reached, _ = self._env.step(action)
+            steps += 1
+            self._episode_steps += 1
+            reward_sum += float(reward)
+            self._success = self._success or bool(goal_reached)
+            self._terminated = self._success and self.terminate_on_success
+            self._truncated = self._episode_steps >= self.max_episode_steps
+            if self._terminated or self._truncated:
+                break
+        self._obs = self._observe(raw)
+        return self._copy_obs(), reward_sum, self._terminated, self._truncated, self._info(steps)
+
+    def sim_state(self) -> np.ndarray:
+        """The flattened MuJoCo state (what LIBERO's datasets store as ``states``)."""
+        return self._env.get_sim_state().copy()
+
+    def _observe(self, raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        obs = {"state": proprio_state(raw)}
+        for key, camera in self._cameras.items():
+            obs[key] = self._render(camera, self._image_size, self._image_size)
+        return obs
+
+    def _copy_obs(self) -> dict[str, np.ndarray]:
+        return {k: v.copy() for k, v in self._obs.items()}
+
+    def _info(self, steps: int) -> dict[str, Any]:
+        return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
+
+    def _render(self, camera: str, height: int, width: int) -> np.ndarray:
+        if not self._renderer_ready:
+            self._prepare_renderer(camera)
+        frame = self._env.sim.render(camera_name=camera, width=width, height=height)
+        return np.ascontiguousarray(frame[::-1, ::-1])  # robosuite's frames come out rotated by 180 degrees
+
+    def _prepare_renderer(self, camera: str) -> None:
+        import mujoco
+
+        try:
+            self._env.sim.render(camera_name=camera, width=8, height=8)
+        except Exception as err:  # noqa: BLE001 - GL failures come as several error types
+            raise RenderingError(f"offscreen rendering failed ({str(err).splitlines()[0]}): set MUJOCO_GL=egl "
+                                 "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)") from err
+        if not self.shadows:  # about 1.7x faster, but the published datasets were rendered with them
+            scene = self._env.sim._render_context_offscreen.scn
+            scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+            scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        self._renderer_ready = True
+
+    def render(self) -> np.ndarray | None:
+        """The agentview camera at ``render_size``, uint8 [h, w, 3] upright, if built with one."""
+        if self.render_size is None:
+            return None
+        return self._render(AGENT_CAMERA, *self.render_size)
+
+    def close(self) -> None:
+        if getattr(self, "_env", None) is not None:
+            self._env.close()  # frees the GL context now; MuJoCo's EGL complains if left to __del__
+            self._env = None

@@ -1,0 +1,131 @@
+"""Scripted pick-and-place demonstrations for LIBERO-Object, written as LIBERO HDF5 files.
+
+LIBERO ships no scripted experts and its demonstration datasets are downloads. For machines
+without them, this records demonstrations of libero_object tasks ("pick up the X and place it
+in the basket") with a scripted controller that reads the object and basket positions from the
+simulator (privileged information no policy sees): above the object, down, close the gripper,
+lift, over the basket, open. Tried from initial states 0-3 of each task, it succeeded on all
+four for seven objects (alphabet soup, bbq sauce, tomato sauce, butter, milk, chocolate pudding,
+orange juice), on one for the cream cheese and on none for the ketchup and the salad dressing;
+failed attempts are discarded. The files are in LIBERO's own format
+(``stepnft.envs.libero.datasets``), so SFT reads them exactly as it reads the published ones:
+
+    python -m stepnft.envs.libero.scripted --tasks pick_up_the_alphabet_soup_and_place_it_in_the_basket \\
+        --episodes 5 --out demos/libero_scripted
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from stepnft.envs.libero.datasets import write_hdf5
+
+GRIPPER_OPEN, GRIPPER_CLOSED = -1.0, 1.0
+POSITION_GAIN = 40.0
+"""Translation action per metre of error (OSC_POSE moves the hand up to 5 cm per unit action)."""
+
+
+def _plan(obj: np.ndarray, basket: np.ndarray) -> list[tuple[np.ndarray | None, float, int]]:
+    """(hand target or None to hold still, gripper command, max steps) for each phase."""
+    up = np.array([0.0, 0.0, 1.0])
+    return [(obj + 0.12 * up, GRIPPER_OPEN, 40), (obj + 0.01 * up, GRIPPER_OPEN, 40), (None, GRIPPER_CLOSED, 15),
+            (obj + 0.25 * up, GRIPPER_CLOSED, 40), (basket + 0.25 * up, GRIPPER_CLOSED, 60),
+            (basket + 0.15 * up, GRIPPER_CLOSED, 20), (None, GRIPPER_OPEN, 40)]
+
+
+def record_episode(env, seed: int) -> dict | None:
+    """One scripted episode on a one-action ``LiberoChunkEnv`` of a libero_object task from
+    initial state ``seed``: LIBERO's per-step arrays (observations before each action), or None
+    if it failed."""
+    env.reset(seed=seed)
+    robosuite_env = env._env.env
+    obj_name, basket_name = env._env.obj_of_interest[:2]
+    raw = robosuite_env._get_observations()
+    plan = _plan(raw[f"{obj_name}_pos"].copy(), raw[f"{basket_name}_pos"].copy())
+    record = {k: [] for k in ("actions", "states", "ee_pos", "ee_ori", "gripper_states", "joint_states")}
+    frames = {"agentview_rgb": [], "eye_in_hand_rgb": []}
+    info, terminated, truncated = {"success": False}, False, False
+    for target, gripper, max_steps in plan:
+        for _ in range(max_steps):
+            raw = robosuite_env._get_observations()
+            if target is None:
+                move = np.zeros(3)
+            elif np.linalg.norm(target - raw["robot0_eef_pos"]) < 0.01:
+                break
+            else:
+                move = np.clip(POSITION_GAIN * (target - raw["robot0_eef_pos"]), -1.0, 1.0)
+            action = np.concatenate([move, np.zeros(3), [gripper]]).astype(np.float32)
+            obs = env._copy_obs()
+            state = obs["state"]
+            record["states"].append(env.sim_state())
+            record["ee_pos"].append(state[:3])
+            record["ee_ori"].append(state[3:6])
+            record["gripper_states"].append(state[6:])
+            record["joint_states"].append(raw["robot0_joint_pos"].astype(np.float32))
+            for key, src in (("agentview_rgb", "image"), ("eye_in_hand_rgb", "wrist_image")):
+                if src in obs:  # LIBERO's files hold robosuite's raw frames (rotated by 180 degrees)
+                    frames[key].append(obs[src][::-1, ::-1])
+            record["actions"].append(action)
+            _, _, terminated, truncated, info = env.step(action[None])
+            if terminated or truncated:
+                break
+        if terminated or truncated:
+            break
+    if not info["success"]:
+        return None
+    out = {k: np.stack(v) for k, v in record.items()}
+    return out | {k: np.stack(v) for k, v in frames.items() if v}
+
+
+def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: int | None = None,
+                 image_size: int = 128) -> Path:
+    """Scripted demonstrations of ``task`` until ``episodes`` succeed (initial states 0, 1, ...)
+    into ``out_dir/<suite>/<task>_demo.hdf5``; returns the file."""
+    from stepnft.envs.libero import LIBERO
+    from stepnft.envs.libero.suites import all_tasks
+
+    info = all_tasks()[task]
+    if info.suite != "libero_object":
+        raise ValueError(f"the scripted pick-and-place handles libero_object tasks only, not {task}")
+    max_attempts = 5 * episodes if max_attempts is None else max_attempts
+    sim = LIBERO(image_size=image_size, wrist_camera=int(image_size > 0))
+    env = sim.make_env(task, n_exec=1, max_episode_steps=info.max_episode_steps)
+    demos, attempts = [], 0
+    try:
+        while len(demos) < episodes:
+            if attempts == max_attempts:
+                raise ValueError(f"the scripted pick-and-place succeeded on only {len(demos)} of {attempts} initial "
+                                 f"states of {task}: ask for fewer episodes")
+            demo = record_episode(env, attempts)
+            attempts += 1
+            if demo is not None:
+                demos.append(demo)
+    finally:
+        env.close()
+    path = Path(out_dir) / info.suite / f"{task}_demo.hdf5"
+    write_hdf5(path, task, demos)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    from stepnft.envs.libero import LIBERO
+
+    parser = argparse.ArgumentParser(prog="python -m stepnft.envs.libero.scripted", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tasks", nargs="+", default=["libero_object"], help="libero_object tasks (or the suite)")
+    parser.add_argument("--episodes", type=int, default=5, help="successful demonstrations per task")
+    parser.add_argument("--out", required=True, help="output folder (LIBERO's datasets layout)")
+    parser.add_argument("--image-size", type=int, default=128, help="camera frames stored (0: none)")
+    args = parser.parse_args(argv)
+    for task in LIBERO(image_size=0).validate_tasks(args.tasks):
+        try:
+            print(f"wrote {record_demos(task, args.episodes, args.out, image_size=args.image_size)}")
+        except ValueError as err:
+            print(f"skipped {task}: {err}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
