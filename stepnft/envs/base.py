@@ -86,8 +86,8 @@ class Simulator(ABC):
         return False
 
     def load_dataset(self, path, images: bool = False) -> list:
-        """The demonstrations at ``path`` (see :meth:`has_dataset`) as
-        :class:`stepnft.data.demos.DemoEpisode`\ s; ``images`` also loads their camera frames."""
+        """The demonstrations at ``path`` (see :meth:`has_dataset`) as a list of
+        :class:`stepnft.data.demos.DemoEpisode`; ``images`` also loads their camera frames."""
         raise ValueError(f"{self.label} reads no demonstration format of its own: give a stepnft demos folder")
 
     def validate_tasks(self, tasks: str | Sequence[str]) -> list[str]:

@@ -1,6 +1,6 @@
 """LIBERO demonstrations from disk: LIBERO's published HDF5 files and LeRobot-format datasets.
 
-Both become :class:`stepnft.data.demos.DemoEpisode`\\ s for the SFT path (``demos_to_chunks``)
+Both become :class:`stepnft.data.demos.DemoEpisode` objects for the SFT path (``demos_to_chunks``)
 with the env's ``state`` (8-d: end-effector position, axis-angle orientation, gripper finger
 positions), 7-d actions and the task's instruction as the simulator defines it; with
 ``images=True`` also ``image`` (agentview) and ``wrist_image`` frames, upright as the env gives

@@ -22,8 +22,9 @@ evaluation protocol. An unseeded reset draws the state from the env's own stream
 reset (its random object placement drawn from a generator seeded by the state index, then
 overwritten by the initial state), the state is set, and ``settle_steps`` no-op actions (gripper
 open) let objects settle, as the reference evaluation does; they do not count as episode steps.
-``reset(options={"init_state": flat_state})`` starts from any flattened MuJoCo state of the task
-(e.g. the first state of a recorded demonstration).
+``reset(options={"init_state": flat_state})`` starts exactly from any flattened MuJoCo state of
+the task, without settling steps (e.g. a state of a recorded demonstration). Replaying recorded
+actions from there can drift: the gripper's command ramp is not part of MuJoCo's state.
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ class LiberoChunkEnv(gym.Env):
         for robot in self._env.robots:  # a soft reset leaves the gripper's command ramp where it was
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
         raw = self._env.set_init_state(np.asarray(state, dtype=np.float64))
-        for _ in range(self.settle_steps):
+        for _ in range(0 if "init_state" in options else self.settle_steps):
             raw, _, _, _ = self._env.step(SETTLE_ACTION)
         self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, False
         self._obs = self._observe(raw)
