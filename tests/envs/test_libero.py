@@ -12,7 +12,7 @@ except ImportError as err:
 
 from stepnft.cli import main
 from stepnft.data.demos import demos_to_chunks, load_demos
-from stepnft.envs import get_simulator
+from stepnft.envs import get_simulator, make_vec_env
 from stepnft.envs.libero.datasets import load_dataset
 from stepnft.envs.libero.scripted import record_demos
 from stepnft.envs.libero.suites import all_tasks, initial_states
@@ -139,6 +139,25 @@ def test_a_replayed_demonstration_reaches_success_from_the_task_predicate(env, d
         open_hand[:, 6] = -1.0
         _, _, _, truncated, info = env.step(open_hand)
     assert not info["success"]
+
+
+@pytest.mark.slow
+def test_worker_processes_step_like_one_process():
+    from stepnft.config import EnvConfig
+
+    results = []
+    for workers in (0, 1):
+        cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, num_workers=workers, options={"image_size": 0})
+        venv = make_vec_env(cfg, n_exec=4, seed=0)
+        try:
+            obs, _ = venv.reset(seed=[7])
+            chunk = np.random.default_rng(0).uniform(-1, 1, (1, 4, 7)).astype(np.float32)
+            after, reward, _, _, info = venv.step(chunk)
+            results.append((obs["state"], after["state"], reward, info["steps"]))
+        finally:
+            venv.close()
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_hdf5_loader_reads_libero_layout(tmp_path):

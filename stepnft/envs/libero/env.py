@@ -1,6 +1,6 @@
 """One LIBERO task as a chunk env (see ``stepnft.envs.base`` for the contract).
 
-The scene is LIBERO's robosuite environment (``OffScreenRenderEnv``: a Panda arm with the
+The scene is LIBERO's robosuite environment (``ControlEnv``: a Panda arm with the
 OSC_POSE controller at 20 Hz) built from the task's BDDL definition; success is the task's goal
 predicate (``_check_success``), evaluated after every env step.
 
@@ -96,15 +96,18 @@ class LiberoChunkEnv(gym.Env):
         self.observation_space = gym.spaces.Dict(spaces)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n_exec, ACTION_DIM), np.float32)
 
-        from libero.libero.envs import OffScreenRenderEnv
+        from libero.libero.envs.env_wrapper import ControlEnv
 
         # No robosuite camera observations (they would render every camera after every env
-        # step): the cameras are rendered here, once per call. A soft reset (hard_reset=False)
-        # keeps the compiled model instead of rebuilding it from XML (seconds) at every reset.
-        self._env = OffScreenRenderEnv(bddl_file_name=self.task.bddl_file, use_camera_obs=False,
-                                       camera_names=[AGENT_CAMERA], camera_heights=max(image_size, 1),
-                                       camera_widths=max(image_size, 1), hard_reset=False, ignore_done=True,
-                                       control_freq=CONTROL_HZ)
+        # step): the cameras are rendered here, once per call, and a GL context is made only
+        # if something is rendered (none for a state-only env; EGL does not survive a fork). A
+        # soft reset (hard_reset=False) keeps the compiled model instead of rebuilding it from
+        # XML (seconds) at every reset.
+        self._env = ControlEnv(bddl_file_name=self.task.bddl_file, use_camera_obs=False,
+                               has_offscreen_renderer=bool(self._cameras or render_size), has_renderer=False,
+                               camera_names=[AGENT_CAMERA], camera_heights=max(image_size, 1),
+                               camera_widths=max(image_size, 1), hard_reset=False, ignore_done=True,
+                               control_freq=CONTROL_HZ)
         self._renderer_ready = False
         self.np_random, _ = seeding.np_random(seed)
         self._obs: dict[str, np.ndarray] | None = None
