@@ -104,8 +104,8 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "throughput.json").write_text(json.dumps(summary, indent=1))
     lines = ["| suite | setting | env steps/s | reset (s) | build (s) |", "|---|---|---|---|---|"]
-    lines += [f"| {r['suite']} | {r['setting']} | {r['env_steps_per_s']:.1f} | {r.get('reset_s', float('nan')):.2f} | "
-              f"{r['build_s']:.1f} |" for r in rows]
+    lines += [f"| {r['suite']} | {r['setting']} | {r['env_steps_per_s']:.1f} | "
+              f"{format(r['reset_s'], '.2f') if 'reset_s' in r else '-'} | {r['build_s']:.1f} |" for r in rows]
     lines.append(f"\n{args.steps} env steps per setting; {summary['cpus']} CPUs; load average (1, 5, 15 min) "
                  f"before {tuple(round(x, 2) for x in load_before)}, after "
                  f"{tuple(round(x, 2) for x in summary['load_average_after'])}.")

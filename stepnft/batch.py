@@ -32,7 +32,10 @@ EPISODE_KEYS = ("episode_success", "episode_task", "episode_length", "episode_se
 CALL_KEYS = ("actions", "mask", "reward", "done", "episode")
 STEP_KEYS = ("call", "x_t", "x_next", "v_old", "t", "dt")
 OBS_KEYS = ("state", "task")
-"""Observation keys every simulator provides (camera simulators add ``image``)."""
+"""Observation keys every simulator provides (camera simulators add ``image``, and LIBERO's
+wrist camera ``wrist_image``)."""
+CAMERA_KEYS = ("image", "wrist_image")
+"""Camera observations: uint8 [C, H, W, 3]."""
 
 _DTYPES = {
     "episode_success": torch.bool, "episode_task": torch.int64, "episode_length": torch.int64,
@@ -123,7 +126,7 @@ class Batch:
             shape = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
             raise ValueError(f"batch key {key!r} must have {rows} rows (the {table} table), got {shape}")
         want = _DTYPES.get(key, torch.float32)
-        if key not in ("state", "image") and value.dtype != want:
+        if key != "state" and key not in CAMERA_KEYS and value.dtype != want:
             raise ValueError(f"batch key {key!r} must be {want}, got {value.dtype}")
 
     @classmethod

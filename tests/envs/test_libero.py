@@ -160,6 +160,30 @@ def test_worker_processes_step_like_one_process():
         np.testing.assert_array_equal(a, b)
 
 
+def test_the_collector_records_camera_observations():
+    import torch
+
+    from stepnft.algos.base import RolloutSpec
+    from stepnft.config import EnvConfig
+    from stepnft.policies.base import make_policy
+    from stepnft.policies.flow import FlowPolicyConfig
+    from stepnft.rollout.collector import Collector
+
+    cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, max_episode_steps=8,
+                    options={"image_size": 16, "wrist_camera": 1, "settle_steps": 0})
+    collector = Collector(make_vec_env(cfg, n_exec=4, seed=0), seed=0)
+    try:
+        torch.manual_seed(0)
+        policy = make_policy(FlowPolicyConfig(state_dim=8, action_dim=7, lang_dim=0, horizon=4, n_exec=4))
+        batch = collector.play_wave(policy, 0.3, collector.env_generators, seeds=[0], record=RolloutSpec(0.3))
+    finally:
+        collector.close()
+    assert batch.env_steps == 8 and batch.num_calls == 2
+    for key in ("image", "wrist_image"):
+        assert batch.obs[key].shape == (2, 16, 16, 3) and batch.obs[key].dtype == torch.uint8
+    assert not torch.equal(batch.obs["image"], batch.obs["wrist_image"])
+
+
 def test_hdf5_loader_reads_libero_layout(tmp_path):
     """A file written by hand in the layout of LIBERO's published datasets."""
     import h5py

@@ -114,10 +114,6 @@ class LiberoChunkEnv(gym.Env):
         self._episode_steps = 0
         self._success = self._terminated = self._truncated = False
 
-    @property
-    def num_initial_states(self) -> int:
-        return len(self._init_states)
-
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Starts an episode from initial state ``seed % 50`` (see the module doc).
         ``options={"idle": True}``: sit this wave out (see ``stepnft.envs.base``)."""
