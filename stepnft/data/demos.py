@@ -114,8 +114,8 @@ def generate_demos(
     entries, discarded = [], {}
     bar = tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0)
     for task in tasks:
+        expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
         env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps)
-        expert = sim.expert(task, seed)
         # A noise stream per (seed, task), unaffected by which other tasks are generated.
         noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
         (out_dir / task).mkdir(exist_ok=True)

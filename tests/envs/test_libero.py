@@ -59,6 +59,11 @@ def test_suites_expand_to_their_tasks_each_with_an_instruction(sim):
         sim.expert(SOUP, 0)
 
 
+def test_demos_command_explains_there_are_no_experts(tmp_path, capsys):
+    assert main(["demos", "--env.name", "libero", "--env.tasks", SOUP, "--demos.path", str(tmp_path / "d")]) == 2
+    assert "no scripted experts" in capsys.readouterr().err
+
+
 def test_options_are_checked():
     with pytest.raises(ValueError, match="image_size"):
         get_simulator("libero", {"image_size": -1})

@@ -89,12 +89,6 @@ def _episode(task: str, state: np.ndarray, actions: np.ndarray, successes: np.nd
         images={k: np.concatenate([v, v[-1:]]) for k, v in images.items()})
 
 
-def _task_of(name: str, where: str) -> str:
-    if name not in all_tasks():
-        raise ValueError(f"{where}: {name!r} is not a task of LIBERO's suites")
-    return name
-
-
 # ----------------------------------------------------------------------------- LIBERO HDF5
 
 def load_hdf5(path: Path, images: bool = False) -> list[DemoEpisode]:
@@ -107,8 +101,10 @@ def load_hdf5(path: Path, images: bool = False) -> list[DemoEpisode]:
         with h5py.File(file, "r") as f:
             data = f["data"]
             bddl = data.attrs.get("bddl_file_name")
-            name = Path(bddl).stem if bddl else re.sub(r"_demo$", "", file.stem)
-            task = _task_of(name, str(file))
+            bddl = bddl.decode() if isinstance(bddl, bytes) else bddl
+            task = Path(bddl).stem if bddl else re.sub(r"_demo$", "", file.stem)
+            if task not in all_tasks():
+                raise ValueError(f"{file}: {task!r} is not a task of LIBERO's suites")
             for key in sorted(data, key=lambda k: int(k.rsplit("_", 1)[-1])):
                 demo = data[key]
                 obs = demo["obs"]
