@@ -90,27 +90,37 @@ def read_metrics(path: Path) -> list[dict]:
 
 
 def plot_learning_curve(run_dir: Path) -> Path:
-    """``learning_curve.png``: evaluation and rollout success against env steps."""
+    """``learning_curve.png``: success against env steps, the average and one panel per task:
+    rollouts (Flow-SDE, acting policy), validation evaluations during training and the test
+    evaluations before and after (ODE)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     records = read_metrics(run_dir / "metrics.jsonl")
-    fig, ax = plt.subplots(figsize=(7, 4))
-    roll = [(r["env_steps"], r["charts/rollout_success_rate"]) for r in records
-            if r.get("charts/rollout_success_rate") is not None]
-    ev = [(r["env_steps"], r["charts/success_rate"]) for r in records if r.get("charts/success_rate") is not None]
-    if roll:
-        ax.plot(*zip(*roll), color="tab:gray", alpha=0.6, label="rollout (Flow-SDE, acting policy)")
-    if ev:
-        ax.plot(*zip(*ev), "o-", color="tab:blue", label="evaluation (ODE, fixed states)")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("success rate")
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
-    ax.set_title(f"stepnft: {run_dir.name}")
+    tasks = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith(("eval/", "rollout/"))})
+    panels = [("average", "charts/rollout_success_rate", "charts/validation_success_rate", "charts/success_rate")]
+    panels += [(t, f"rollout/{t}", f"validation/{t}", f"eval/{t}") for t in tasks]
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
+    for ax, (title, roll_key, val_key, test_key) in zip(axes.flat, panels):
+        for key, style, label in ((roll_key, dict(color="tab:gray", alpha=0.5), "rollout (Flow-SDE)"),
+                                  (val_key, dict(color="tab:blue", marker="o", ms=3), "validation (ODE)"),
+                                  (test_key, dict(color="tab:red", marker="s", ls="none"), "test (ODE)")):
+            points = [(r["env_steps"], r[key]) for r in records if r.get(key) is not None]
+            if points:
+                ax.plot(*zip(*points), label=label, **style)
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("env steps")
+    axes.flat[0].legend(loc="lower right", fontsize=7)
+    fig.suptitle(f"stepnft: {run_dir.name}")
     fig.tight_layout()
     out = run_dir / "learning_curve.png"
     fig.savefig(out, dpi=100)
