@@ -22,29 +22,33 @@ from typing import Callable
 import torch
 from tqdm.auto import tqdm
 
-from stepnft.algos.base import make_algorithm
+from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
 from stepnft.envs import get_simulator, make_vec_env
 from stepnft.evaluate import evaluate_policy, format_table, tasks_below
-from stepnft.policies.base import Policy, load_policy
+from stepnft.policies.base import Policy, load_policy, non_finite
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
-from stepnft.runs import MetricLogger, plot_learning_curve, prepare_run_dir, refuse_existing_run, write_atomic
+from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
+                          run_kind, write_atomic)
 
 
 def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
     """Run (or resume) a training run; returns the summary also written to ``summary.json``."""
     with ExitStack() as stack:
-        run_dir, sim, tasks, collector = _start_run(cfg, stack, resume)
+        run_dir, sim, tasks, collector = _start_run(cfg, stack, "train", resume)
         evaluate = _evaluator(collector)
         if resume:
             ckpt = load_checkpoint(run_dir)
             policy, state = ckpt["policy"], ckpt["state"]
         else:
+            policy = _init_policy(cfg) if cfg.init else None
+            mark_run(run_dir, "train")
             save_config(cfg, run_dir / "config.yaml")
-            policy = _initial_policy(cfg, sim, tasks, run_dir, log)
+            policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
+                                              cfg.seed, run_dir / "lang_cache", log)
             policy.save_pretrained(run_dir / "sft_policy")
         policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
@@ -85,6 +89,9 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             env_steps += batch.env_steps
             t1 = time.perf_counter()
             metrics = algo.update(batch)
+            if non_finite(policy.state_dict()):  # the update guard should make this impossible
+                raise RunDiverged(f"the policy's weights became non-finite in iteration {it + 1} (algo.lr="
+                                  f"{cfg.algo.lr:g} too large?); the last checkpoint is intact")
             metrics |= algo.end_iteration(it)
             allocator.update(batch)
             t2 = time.perf_counter()
@@ -146,7 +153,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
 def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     """``stepnft sft``: few-shot SFT on the demonstrations, saved to ``RUN/policy``, then evaluated."""
     with ExitStack() as stack:
-        run_dir, sim, tasks, collector = _start_run(cfg, stack)
+        run_dir, sim, tasks, collector = _start_run(cfg, stack, "sft")
+        mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
                                 run_dir / "lang_cache", log)
@@ -157,18 +165,32 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         return result
 
 
-def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
+def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = False):
     """What ``sft`` and ``train`` start with: checked tasks, a run folder that is free (or holds
-    the run to resume), seeds and threads, and a collector over the vector env (closed with
-    ``stack`` on every exit path). Returns ``(run_dir, simulator, tasks, collector)``."""
+    the training run to resume), seeds and threads, and a collector over the vector env (closed
+    with ``stack`` on every exit path). A folder this call creates is removed again if the run
+    fails before its first checkpoint (or, for SFT, before it finishes), and an empty one is
+    emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
     if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
         raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "
                          f"--policy.state-dim {sim.state_dim} --policy.action-dim {sim.action_dim}")
+    created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
-    if not resume:
-        refuse_existing_run(run_dir)
+    if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone
+        def remove_if_unfinished(exc_type, exc, tb):
+            done = (run_dir / "checkpoints" / "LATEST").is_file() or (run_dir / "summary.json").is_file()
+            if exc_type is not None and not done:
+                for child in run_dir.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+                if created:
+                    run_dir.rmdir()
+        stack.push(remove_if_unfinished)
+    if resume:
+        check_resumable(run_dir)
+    else:
+        check_free(run_dir)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
     venv = make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed)
@@ -177,11 +199,8 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
     return run_dir, sim, tasks, collector
 
 
-def _initial_policy(cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, log) -> Policy:
-    """The policy RL starts from: ``--init``, or few-shot SFT on the demonstrations."""
-    if not cfg.init:
-        return sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                              run_dir / "lang_cache", log)
+def _init_policy(cfg: TrainConfig) -> Policy:
+    """The ``--init`` policy, checked against the run's policy settings before anything is written."""
     policy = load_policy(cfg.init)
     if policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.

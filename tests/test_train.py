@@ -247,3 +247,45 @@ def test_tasks_below_their_start_are_those_whose_interval_lies_below():
     after = {"tasks": {"a": {"success": 0.7, "ci95": [0.6, 0.8]}, "b": {"success": 0.45, "ci95": [0.35, 0.55]},
                        "c": {"success": 0.9, "ci95": [0.8, 0.95]}}}
     assert tasks_below(before, after) == ["a"]
+
+
+def test_a_diverging_run_leaves_only_finite_tensors_and_strict_json(tmp_path):
+    """A learning rate far too large: every tensor written stays finite; metrics.jsonl is strict
+    JSON; the run either ends or stops with RunDiverged, its checkpoint intact."""
+    import dataclasses
+
+    from stepnft.algos.base import RunDiverged
+    from stepnft.demo_bandit import bandit_config, run_bandit_demo
+    from stepnft.policies.base import non_finite
+
+    cfg = bandit_config(iterations=3, run_dir=str(tmp_path / "run"), checkpoint_every=1)
+    cfg = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, lr=1e6, nonfinite_patience=10_000))
+    try:
+        summary = run_bandit_demo(cfg, log=lambda s: None)
+        assert sum(r.get("losses/skipped_nonfinite", 0) for r in summary["history"]) > 0
+    except RunDiverged:  # stopped before its first checkpoint: the failed start is removed
+        assert not (tmp_path / "run").exists()
+        return
+    files = list((tmp_path / "run").rglob("*.safetensors"))
+    assert files
+    for f in files:
+        assert not non_finite(load_file(str(f))), f
+    for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines():
+        json.loads(line, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+
+
+def test_a_torn_metrics_line_is_dropped_on_resume_with_a_warning(finished_run, tmp_path):
+    import shutil
+
+    from stepnft.runs import MetricLogger
+
+    run_dir = tmp_path / "torn"
+    shutil.copytree(finished_run, run_dir)
+    path = run_dir / "metrics.jsonl"
+    path.write_text(path.read_text() + '{"iteration": 5, "env_ste')
+    with pytest.warns(UserWarning, match=f"dropped the torn last line of {path}"):
+        MetricLogger(run_dir, resume_iteration=4).close()
+    assert all(json.loads(line) for line in path.read_text().splitlines())
+    path.write_text('{"iteration": 1}\nnot json\n{"iteration": 2}\n')
+    with pytest.raises(ValueError, match="metrics.jsonl line 2 is not valid JSON"):
+        read_metrics(path, drop_torn_tail=True)

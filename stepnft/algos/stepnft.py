@@ -6,14 +6,15 @@ the training loop drives.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
 from stepnft.batch import Batch
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
@@ -28,7 +29,8 @@ class StepNFTConfig(AlgoConfig):
     name: str = "stepnft"
     """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
     noise_level: float = 0.2
-    """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
+    """Flow-SDE noise level ``a`` of training rollouts, in [0, 10] (0: ODE rollouts, the
+    exploration ablation)."""
     record_steps: Literal["one", "all"] = "all"
     """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond the
     paper, ``all`` K of them: K times the training signal for the same simulator steps.
@@ -78,10 +80,15 @@ class StepNFTConfig(AlgoConfig):
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
 
     def check(self) -> dict[str, bool]:
+        finite = lambda x: x is not None and math.isfinite(x)  # noqa: E731
         return super().check() | {
-            "noise_level": self.noise_level >= 0,
-            "beta": self.beta > 0,
-            "beta_dpo": self.beta_dpo > 0,
+            "noise_level": finite(self.noise_level) and 0 <= self.noise_level <= 10,
+            "beta": finite(self.beta) and self.beta > 0,
+            "beta_dpo": finite(self.beta_dpo) and self.beta_dpo > 0,
+            "max_drift": self.max_drift is None or (finite(self.max_drift) and self.max_drift > 0),
+            "kl_beta": finite(self.kl_beta) and self.kl_beta >= 0,
+            "ema_horizon": self.ema_horizon is None or self.ema_horizon >= 1,
+            "drift_limit": self.drift_limit is None or (finite(self.drift_limit) and self.drift_limit > 0),
             "ema_base": 0 <= self.ema_base <= 1,
             "ema_target": 0 <= self.ema_target <= 1,
             "target": self.target in ("next", "x0"),
@@ -152,10 +159,13 @@ def stepnft_update(
     batch: Batch,
     cfg: StepNFTConfig,
     generator: torch.Generator | None = None,
+    guard: NonFiniteGuard | None = None,
 ) -> dict[str, float]:
     """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
-    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary).
-    Returns metrics averaged over minibatch steps, under stable names."""
+    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary). Steps
+    with a non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over
+    minibatch steps, under stable names."""
+    guard = guard or NonFiniteGuard(cfg)
     y = batch.step_success.float() * 2 - 1
     weights = sample_weights(batch, y, cfg)
     sums: dict[str, float] = defaultdict(float)
@@ -174,18 +184,18 @@ def stepnft_update(
                 mask=batch.mask[batch.call[idx]], target=cfg.target, form=cfg.form, actions=batch.actions[batch.call[idx]],
                 weight=w,
             )
-            for k, val in metrics.items():
-                sums[k] += val
-            seen += 1
             # The guard looks before it steps: no update is taken from a policy already too far
             # from v_old, so the drift stays near the limit however large the learning rate.
             stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
             if stopped:
                 break
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
-            optimizer.step()
+            grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
+            if grad_norm is None:
+                continue
+            for k, val in metrics.items():
+                sums[k] += val
+            seen += 1
+            sums["grad_norm"] += grad_norm
             steps += 1
         if stopped:
             break
@@ -194,7 +204,7 @@ def stepnft_update(
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
     out |= {f"losses/{k}": v for k, v in means.items()}
     out |= {"losses/update_steps": float(steps), "losses/drift_stopped": float(stopped),
-            "losses/skipped_empty": float(skipped)}
+            "losses/skipped_empty": float(skipped), "losses/skipped_nonfinite": float(guard.take_skipped())}
     return out
 
 
@@ -209,6 +219,7 @@ class StepNFT(Algorithm):
         super().__init__(policy, cfg, iterations, generator)
         self.ema = make_ema_copy(policy)
         self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.guard = NonFiniteGuard(cfg)
         self.ema_horizon = cfg.ema_horizon or iterations
 
     @property
@@ -223,7 +234,7 @@ class StepNFT(Algorithm):
 
     def update(self, batch: Batch) -> dict[str, float]:
         self.policy.train()
-        return stepnft_update(self.policy, self.optimizer, batch, self.cfg, self.generator)
+        return stepnft_update(self.policy, self.optimizer, batch, self.cfg, self.generator, self.guard)
 
     def end_iteration(self, iteration: int) -> dict[str, float]:
         decay = ema_decay(iteration, self.ema_horizon, self.cfg.ema_base, self.cfg.ema_target)
@@ -231,8 +242,10 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict()}
+        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "nonfinite_in_a_row": self.guard.in_a_row}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.ema.load_state_dict(state["ema"])
         self.optimizer.load_state_dict(state["optimizer"])
+        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)

@@ -180,3 +180,18 @@ def test_the_algorithm_owns_ema_optimizer_and_their_state():
     other.load_state_dict(state)
     assert all(torch.equal(a, b) for a, b in zip(other.ema.state_dict().values(), algo.ema.state_dict().values()))
     assert other.optimizer.state_dict()["state"].keys() == algo.optimizer.state_dict()["state"].keys()
+
+
+def test_non_finite_steps_are_skipped_counted_and_stop_the_run_after_patience():
+    from stepnft.algos.base import RunDiverged
+
+    policy, batch = make_batch(n=64)
+    batch.x_next[:5] = float("nan")  # a poisoned sample in every epoch's first minibatch or so
+    cfg = StepNFTConfig(noise_level=0.3, minibatch_size=64, update_epochs=3, nonfinite_patience=10)
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-3)
+    before = [p.clone() for p in policy.parameters()]
+    metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
+    assert metrics["losses/skipped_nonfinite"] == 3 and metrics["losses/update_steps"] == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, policy.parameters()))
+    with pytest.raises(RunDiverged, match=r"not finite for 2 optimizer steps in a row.*algo.lr"):
+        stepnft_update(policy, opt, batch, dataclasses.replace(cfg, nonfinite_patience=2))
