@@ -184,19 +184,19 @@ def stepnft_update(
                 mask=batch.mask[batch.call[idx]], target=cfg.target, form=cfg.form, actions=batch.actions[batch.call[idx]],
                 weight=w,
             )
-            # The guard looks before it steps: no update is taken from a policy already too far
-            # from v_old, so the drift stays near the limit however large the learning rate.
+            if math.isfinite(metrics["loss"]):
+                for k, val in metrics.items():
+                    sums[k] += val
+                seen += 1
+            # The drift guard looks before it steps: no update is taken from a policy already too
+            # far from v_old, so the drift stays near the limit however large the learning rate.
             stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
             if stopped:
                 break
             grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
-            if grad_norm is None:
-                continue
-            for k, val in metrics.items():
-                sums[k] += val
-            seen += 1
-            sums["grad_norm"] += grad_norm
-            steps += 1
+            if grad_norm is not None:
+                sums["grad_norm"] += grad_norm
+                steps += 1
         if stopped:
             break
     means = {k: v / max(seen, 1) for k, v in sums.items()}
