@@ -60,11 +60,16 @@ class StepNFTConfig(AlgoConfig):
     eval_ema: bool = False
     """Evaluate (and save as ``policy/``) the EMA rollout policy instead of the trained one
     (the reference evaluates the EMA policy)."""
-    label_balance: Literal["none", "global", "task"] = "global"
+    label_balance: Literal["none", "global", "task", "group"] = "global"
     """Beyond the paper: ``none`` (paper); ``global``: weight samples so successes and failures
     carry equal total weight (successful episodes are short, so positives are a minority of
-    stored samples); ``task``: the same within each task (a zero-mean signal per task).
+    stored samples); ``task``: the same within each task (a zero-mean signal per task);
+    ``group``: the same within each group of ``group_size`` episodes started from one initial
+    state (outcomes then compare actions, not how hard the initial state was).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
+    group_size: int = 1
+    """Episodes started from the same task and initial state, in groups (1: every episode from
+    its own state); with ``label_balance: group`` labels are balanced within each group."""
     episode_weighting: bool = True
     """Beyond the paper: every episode carries the same total weight, however many policy calls
     it made (failures run to the step cap and would otherwise dominate the batch: a failing
@@ -93,7 +98,8 @@ class StepNFTConfig(AlgoConfig):
             "ema_target": 0 <= self.ema_target <= 1,
             "target": self.target in ("next", "x0"),
             "form": self.form in ("rank", "wmse"),
-            "label_balance": self.label_balance in ("none", "global", "task"),
+            "label_balance": self.label_balance in ("none", "global", "task", "group"),
+            "group_size": self.group_size >= 1 and (self.label_balance != "group" or self.group_size > 1),
             "sde_steps": self.sde_steps in ("all", "one"),
             "record_steps": self.record_steps in ("one", "all"),
         }
@@ -141,11 +147,18 @@ def informative_mask(y: Tensor, group: Tensor) -> Tensor:
     return keep
 
 
+def episode_groups(batch: Batch) -> Tensor:
+    """``[E]`` group id of every episode: episodes of one task from one initial state share it."""
+    keys = torch.stack([batch.episode_task, batch.episode_seed], dim=1)
+    return keys.unique(dim=0, return_inverse=True)[1]
+
+
 def sample_weights(batch: Batch, y: Tensor, cfg: StepNFTConfig) -> Tensor | None:
     """``[N]`` weights of the recorded steps from the options above (None: uniform)."""
     weights = episode_weights(batch.step_episode) if cfg.episode_weighting else None
     if cfg.label_balance != "none":
-        weights = label_weights(y, batch.step_task if cfg.label_balance == "task" else None, weights)
+        groups = {"global": None, "task": batch.step_task, "group": episode_groups(batch)[batch.step_episode]}
+        weights = label_weights(y, groups[cfg.label_balance], weights)
     if cfg.drop_uniform_tasks:
         weights = torch.ones(len(y)) if weights is None else weights
         weights = weights * informative_mask(y, batch.step_task).float()
@@ -224,7 +237,7 @@ class StepNFT(Algorithm):
 
     @property
     def rollout(self) -> RolloutSpec:
-        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps)
+        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps, self.cfg.group_size)
 
     def acting_policy(self) -> Policy:
         return self.ema.eval()
