@@ -224,6 +224,8 @@ class PPO(Algorithm):
             values = self.critic(features)
         advantages, returns = gae(success_rewards(batch), values, batch.done, batch.episode, cfg.gamma, cfg.gae_lambda)
         explained = 1.0 - float((returns - values).var() / returns.var()) if returns.var() > 0 else float("nan")
+        raw = {"charts/advantage_mean": float(advantages.mean()),
+               "charts/advantage_std": float(advantages.std()) if len(advantages) > 1 else 0.0}
         if cfg.norm_adv and len(advantages) > 1:
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
@@ -238,7 +240,7 @@ class PPO(Algorithm):
         self.policy.train()
         metrics = policy_gradient_update(self.policy, self.optimizer, batch, advantages, cfg, self.generator,
                                          critic_step)
-        return metrics | {"losses/explained_variance": explained, "charts/value_mean": float(values.mean())}
+        return metrics | raw | {"losses/explained_variance": explained, "charts/value_mean": float(values.mean())}
 
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {"optimizer": self.optimizer.state_dict()}
