@@ -417,7 +417,7 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
 
     summary = summarise(cmd, out, status)
     settings = json.loads((out / "compare.json").read_text())
-    tasks, columns, ref, rows = summary["tasks"], summary["columns"], summary["reference"], summary["rows"]
+    columns, ref, rows = summary["columns"], summary["reference"], summary["rows"]
 
     lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "",
              f"RL budget {settings['env_step_budget']:,} env steps per run; seeds {', '.join(map(str, cmd.seeds))}; "

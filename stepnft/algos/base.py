@@ -93,6 +93,17 @@ def make_optimizer(params, cfg: AlgoConfig) -> torch.optim.Optimizer:
     return torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps, weight_decay=cfg.weight_decay)
 
 
+def gradient_step(loss: torch.Tensor, optimizer: torch.optim.Optimizer, module: torch.nn.Module,
+                  grad_clip: float) -> float:
+    """One optimizer step on ``loss``, ``module``'s global gradient norm clipped to ``grad_clip``;
+    returns the norm before clipping."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    norm = float(torch.nn.utils.clip_grad_norm_(module.parameters(), grad_clip))
+    optimizer.step()
+    return norm
+
+
 class Algorithm(ABC):
     """One RL fine-tuning method (see the module doc for the loop that drives it)."""
 

@@ -16,7 +16,7 @@ from typing import Any, Callable, Literal
 import torch
 from torch import Tensor, nn
 
-from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, gradient_step, make_optimizer
 from stepnft.batch import Batch
 from stepnft.losses import clipped_policy_loss
 from stepnft.policies.base import Policy
@@ -153,10 +153,7 @@ def policy_gradient_update(
             stopped = cfg.target_kl is not None and metrics["approx_kl"] > cfg.target_kl
             if stopped:
                 break
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
-            optimizer.step()
+            sums["grad_norm"] += gradient_step(loss, optimizer, policy, cfg.grad_clip)
             steps += 1
             if extra_step is not None:
                 for k, val in extra_step(calls).items():
@@ -231,10 +228,7 @@ class PPO(Algorithm):
 
         def critic_step(calls: Tensor) -> dict[str, float]:
             value_loss = 0.5 * (self.critic(features[calls]) - returns[calls]).pow(2).mean()
-            self.critic_optimizer.zero_grad(set_to_none=True)
-            value_loss.backward()
-            nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.grad_clip)
-            self.critic_optimizer.step()
+            gradient_step(value_loss, self.critic_optimizer, self.critic, cfg.grad_clip)
             return {"value_loss": value_loss.item()}
 
         self.policy.train()

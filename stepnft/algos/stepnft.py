@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, gradient_step, make_optimizer
 from stepnft.batch import Batch
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
@@ -182,10 +182,7 @@ def stepnft_update(
             stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
             if stopped:
                 break
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
-            optimizer.step()
+            sums["grad_norm"] += gradient_step(loss, optimizer, policy, cfg.grad_clip)
             steps += 1
         if stopped:
             break
