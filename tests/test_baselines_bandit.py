@@ -39,7 +39,7 @@ def test_baseline_learns_on_the_bandit(sft_policy, algo):
     before, after = result["average"]["before"], result["average"]["after"]
     assert before < 0.5 and after >= 0.75 and after - before >= 0.3, (before, after)
     updates = result["history"][1:]
-    assert all(r["losses/update_steps"] > 0 and r["losses/approx_kl"] >= 0 for r in updates)
+    assert all(r["losses/update_steps"] > 0 for r in updates)
     if algo.name == "ppo":
         assert all("losses/value_loss" in r for r in updates)
 

@@ -9,6 +9,7 @@ class the training loop drives.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any, Callable, Literal
@@ -139,10 +140,13 @@ def policy_gradient_update(
         old_log_prob = steps_log_prob(batch, rows.flatten(), batch.v_old[rows.flatten()],
                                       cfg.noise_level).view_as(rows).sum(dim=1)
     sums: dict[str, float] = defaultdict(float)
-    seen = steps = 0
+    seen = steps = skipped = 0
     stopped = False
     for _ in range(cfg.update_epochs):
         for calls in torch.randperm(batch.num_calls, generator=generator).split(cfg.minibatch_size):
+            if not bool(advantages[calls].any()):
+                skipped += 1  # nothing to learn (e.g. GRPO's uniform groups); Adam would still move
+                continue
             step_rows = rows[calls].flatten()
             v = policy.velocity(policy.processor(batch.steps_obs(step_rows)), batch.x_t[step_rows], batch.t[step_rows])
             log_prob = steps_log_prob(batch, step_rows, v, cfg.noise_level).view(len(calls), per_call).sum(dim=1)
@@ -160,10 +164,13 @@ def policy_gradient_update(
                     sums[k] += val
         if stopped:
             break
-    out = {f"losses/{k}": v / max(seen, 1) for k, v in sums.items()}
+    # The same names every iteration, NaN (logged as null) when every minibatch was skipped.
+    out = {f"losses/{k}": math.nan for k in ("policy_loss", "approx_kl", "old_approx_kl", "clipfrac", "ratio_max")}
+    out |= {f"losses/{k}": v / max(seen, 1) for k, v in sums.items()}
     out |= {f"losses/{k}": sums[k] / max(steps, 1) for k in ("grad_norm", "value_loss") if k in sums}
     out |= {"losses/update_steps": float(steps), "losses/kl_stopped": float(stopped),
-            "losses/log_prob": float(old_log_prob.mean()), "charts/advantage_mean": float(advantages.mean()),
+            "losses/skipped_empty": float(skipped), "losses/log_prob": float(old_log_prob.mean()),
+            "charts/advantage_mean": float(advantages.mean()),
             "charts/advantage_std": float(advantages.std()) if len(advantages) > 1 else 0.0}
     return out
 

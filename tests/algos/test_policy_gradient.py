@@ -156,3 +156,18 @@ def test_rollout_specs_and_config_checks():
         GRPOConfig(group_size=1)
     with pytest.raises(ValueError, match="algo.gae_lambda"):
         PPOConfig(gae_lambda=1.5)
+
+
+def test_minibatches_without_advantage_are_skipped():
+    """GRPO's uniform groups give 0 advantage: no step is taken (Adam's momentum would still move
+    the policy), and the metric names stay."""
+    policy, batch = make_batch(list(range(64)), success=[i % 2 for i in range(64)])
+    before = [p.detach().clone() for p in policy.parameters()]
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-2)
+    policy_gradient_update(policy, optimizer, batch, torch.ones(64), PPOConfig(minibatch_size=32, update_epochs=1))
+    moved = [p.detach().clone() for p in policy.parameters()]
+    metrics = policy_gradient_update(policy, optimizer, batch, torch.zeros(64), PPOConfig(minibatch_size=32))
+    assert metrics["losses/skipped_empty"] == 4 and metrics["losses/update_steps"] == 0
+    assert metrics["losses/approx_kl"] != metrics["losses/approx_kl"]  # NaN: nothing measured
+    assert all(torch.equal(a, b) for a, b in zip(moved, policy.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(before, moved))
