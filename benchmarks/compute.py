@@ -145,12 +145,14 @@ def time_learner(name: str, args: argparse.Namespace, lang_cache: str, queue) ->
     with PeakRss() as memory:
         for _ in range(args.repeats):
             start = time.perf_counter()
-            algo.update(batch)
+            metrics = algo.update(batch)
             times.append(time.perf_counter() - start)
     seconds = statistics.median(times)
     queue.put({"algo": name, "update_s": seconds, "calls": batch.num_calls, "transitions": batch.num_steps,
                "calls_per_s": batch.num_calls / seconds, "transitions_per_s": batch.num_steps / seconds,
                "epochs": algo_cfg.update_epochs, "minibatch_size": algo_cfg.minibatch_size,
+               "optimizer_steps": metrics["losses/update_steps"],
+               "ms_per_step": 1000 * seconds / max(metrics["losses/update_steps"], 1),
                "rss_before_mb": rss_before, "update_peak_rss_mb": memory.peak_mb, "process_peak_rss_mb": rss_mb()})
 
 
@@ -230,10 +232,12 @@ def main(argv=None) -> dict:
     lines = [f"Learner: one update on {args.calls} policy calls of {args.episodes} episodes ({args.config}: "
              f"{cfg.policy.hidden_dim}-wide policy, {len(cfg.env.tasks)} tasks), median of {args.repeats}, "
              f"{args.threads} torch thread(s).", "",
-             f"| algorithm | transitions | epochs × minibatch | update (s) | calls/s | transitions/s | {ref['algo']} "
-             "calls/s ÷ this | RSS before → peak in updates (MiB) | process peak RSS (MiB) |", "|---|---|---|---|---|---|---|---|---|"]
+             f"| algorithm | transitions | epochs × minibatch | optimizer steps | ms / step | update (s) | calls/s | "
+             f"transitions/s | {ref['algo']} calls/s ÷ this | RSS before → peak in updates (MiB) | "
+             "process peak RSS (MiB) |", "|---" * 11 + "|"]
     for r in learners:
-        lines.append(f"| {r['algo']} | {r['transitions']} | {r['epochs']} × {r['minibatch_size']} | {r['update_s']:.3f} | "
+        lines.append(f"| {r['algo']} | {r['transitions']} | {r['epochs']} × {r['minibatch_size']} | "
+                     f"{r['optimizer_steps']:.0f} | {r['ms_per_step']:.1f} | {r['update_s']:.3f} | "
                      f"{r['calls_per_s']:,.0f} | {r['transitions_per_s']:,.0f} | "
                      f"{ref['calls_per_s'] / r['calls_per_s']:.2f} | {r['rss_before_mb']:.0f} → {r['update_peak_rss_mb']:.0f} | "
                      f"{r['process_peak_rss_mb']:.0f} |")
