@@ -27,6 +27,8 @@ from stepnft.policies.base import Policy
 
 ALGORITHMS: dict[str, str] = {
     "stepnft": "stepnft.algos.stepnft:StepNFT",
+    "ppo": "stepnft.algos.ppo:PPO",
+    "grpo": "stepnft.algos.grpo:GRPO",
 }
 """Registered algorithms by ``algo.name`` (imported on first use). A new algorithm adds a line."""
 
