@@ -22,8 +22,9 @@ from stepnft.algos.base import make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
-from stepnft.envs import get_simulator, make_vec_env
-from stepnft.evaluate import evaluate_policy, format_table
+from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs.base import RenderingError
+from stepnft.evaluate import evaluate_policy, format_table, record_videos
 from stepnft.policies.base import Policy, load_policy
 from stepnft.rollout.collector import Collector
 from stepnft.runs import MetricLogger, plot_learning_curve, prepare_run_dir, refuse_existing_run, write_atomic
@@ -41,7 +42,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             save_config(cfg, run_dir / "config.yaml")
             policy = _initial_policy(cfg, sim, tasks, run_dir, log)
             policy.save_pretrained(run_dir / "sft_policy")
-        policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
+        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
         if resume:
             algo.load_state_dict(state["algorithm"])
@@ -98,6 +99,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         after = evaluate(final, cfg.eval.episodes)
         final.save_pretrained(run_dir / "policy")
         logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after)})
+        if cfg.eval.videos:
+            _film(final, cfg, sim, tasks, run_dir, logger, env_steps, log)
         plot_learning_curve(run_dir)
         summary = {
             "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t]} for t in tasks},
@@ -116,8 +119,9 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         run_dir, sim, tasks, collector = _start_run(cfg, stack)
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log)
+                                run_dir / "lang_cache", log, env_cfg=cfg.env)
         policy.save_pretrained(run_dir / "policy")
+        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector, cfg.eval.seed)(policy, cfg.eval.episodes)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
         log("SFT policy:\n" + format_table(None, result))
@@ -130,9 +134,10 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
     ``stack`` on every exit path). Returns ``(run_dir, simulator, tasks, collector)``."""
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
-    if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
-        raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "
-                         f"--policy.state-dim {sim.state_dim} --policy.action-dim {sim.action_dim}")
+    state_dim = sim.state_dim_for(cfg.env.state_obs)
+    if cfg.policy.state_dim != state_dim or cfg.policy.action_dim != sim.action_dim:
+        raise ValueError(f"{sim.label} has {state_dim}-d states (env.state_obs {cfg.env.state_obs}) and "
+                         f"{sim.action_dim}-d actions: set --policy.state-dim {state_dim} --policy.action-dim {sim.action_dim}")
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
     if not resume:
         refuse_existing_run(run_dir)
@@ -148,7 +153,7 @@ def _initial_policy(cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, log)
     """The policy RL starts from: ``--init``, or few-shot SFT on the demonstrations."""
     if not cfg.init:
         return sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                              run_dir / "lang_cache", log)
+                              run_dir / "lang_cache", log, env_cfg=cfg.env)
     policy = load_policy(cfg.init)
     if policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
@@ -166,6 +171,20 @@ def _evaluator(collector: Collector, seed: int):
                 bar.refresh()
             return evaluate_policy(policy, collector.venv, episodes, seed, progress=progress)
     return evaluate
+
+
+def _film(policy: Policy, cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, logger: MetricLogger,
+          env_steps: int, log) -> None:
+    """``eval.videos`` ODE episodes per task from the evaluation states into ``RUN/videos`` and
+    TensorBoard (a machine without offscreen rendering only loses the videos)."""
+    try:
+        paths = record_videos(policy, sim, tasks, run_dir / "videos", seed=cfg.eval.seed, episodes=cfg.eval.videos,
+                              max_episode_steps=cfg.env.max_episode_steps, env_options=env_options(cfg.env),
+                              on_video=lambda name, frames: logger.video(f"videos/{name}", frames, sim.control_hz,
+                                                                         env_steps))
+        log(f"wrote {len(paths)} videos to {run_dir / 'videos'}")
+    except RenderingError as err:
+        log(f"no videos: {err}")
 
 
 def _eval_record(result: dict) -> dict:
