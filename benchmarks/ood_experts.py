@@ -66,11 +66,11 @@ def main(argv=None) -> dict:
             results[task][name or "ind"] = expert_success(sim, task, name, seeds, args.max_episode_steps) / len(seeds)
             print(f"{task:<16} {name or 'ind':<16} {results[task][name or 'ind']:.2f}", flush=True)
     columns = ["ind", *names]
-    half = lambda p: (wilson_interval(round(p * args.episodes), args.episodes)[1] - p)  # noqa: E731
+    width = lambda p: float(np.subtract(*wilson_interval(round(p * args.episodes), args.episodes)[::-1]))  # noqa: E731
     lines = ["# Scripted experts under the execution perturbations", "",
              f"{args.episodes} episodes per task and setting (seeds from {args.seed}), episodes capped at "
-             f"{args.max_episode_steps} steps; success rate (95 % CI half-width up to "
-             f"{max(half(p) for r in results.values() for p in r.values()):.2f}).", "",
+             f"{args.max_episode_steps} steps; success rate (95 % CIs up to "
+             f"{max(width(p) for r in results.values() for p in r.values()):.2f} wide).", "",
              "| task | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
     lines += [f"| {task} | " + " | ".join(f"{results[task][c]:.2f}" for c in columns) + " |" for task in args.tasks]
     lines.append("| **average** | " + " | ".join(f"{np.mean([results[t][c] for t in args.tasks]):.2f}"
