@@ -18,8 +18,8 @@ from stepnft.envs.metaworld.env import (
     TASK_NAMES,
     MetaWorldChunkEnv,
 )
-from stepnft.envs.metaworld.instructions import INSTRUCTIONS, instruction_for, paraphrases_for
-from stepnft.envs.perturbations import Perturbations, instruction_variants
+from stepnft.envs.metaworld.instructions import INSTRUCTIONS, instruction_for, task_instruction_variants
+from stepnft.envs.perturbations import Perturbations
 
 __all__ = ["MetaWorld", "MetaWorldChunkEnv", "make_metaworld_vec_env", "validate_tasks", "TASK_NAMES", "OBS_DIM",
            "ACTION_DIM", "MAX_PATH_LENGTH", "SIM_STEPS_PER_SECOND", "INSTRUCTIONS", "instruction_for"]
@@ -64,10 +64,7 @@ class MetaWorld(Simulator):
         return STATE_OBS[state_obs]
 
     def instruction_variants(self, task: str, perturbations: Perturbations | None = None) -> list[str]:
-        perturbations = perturbations or Perturbations()
-        paraphrases = paraphrases_for(task) if perturbations.semantic else {}
-        return instruction_variants(instruction_for(task), paraphrases, perturbations.semantic,
-                                    perturbations.heldout)[0]
+        return task_instruction_variants(task, perturbations or Perturbations())[0]
 
     def expert(self, task: str, seed: int) -> Expert:
         (task,) = self.validate_tasks([task])

@@ -35,9 +35,9 @@ from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
 from stepnft.envs.metaworld.camera import CameraRenderer
-from stepnft.envs.metaworld.instructions import instruction_for, paraphrases_for, unknown_task_error
+from stepnft.envs.metaworld.instructions import instruction_for, task_instruction_variants, unknown_task_error
 from stepnft.envs.metaworld.perturb import ModelPerturber
-from stepnft.envs.perturbations import Perturbations, instruction_variants
+from stepnft.envs.perturbations import Perturbations
 
 OBS_DIM = 39
 ACTION_DIM = 4
@@ -110,9 +110,7 @@ class MetaWorldChunkEnv(gym.Env):
         self.task = task
         self.instruction = instruction_for(task)
         self.perturbations = perturbations or Perturbations()
-        self.instructions, self._instruction_segments = instruction_variants(
-            self.instruction, paraphrases_for(task) if self.perturbations.semantic else {},
-            self.perturbations.semantic, self.perturbations.heldout)
+        self.instructions, self._instruction_segments = task_instruction_variants(task, self.perturbations)
         self.state_obs = state_obs
         self.n_exec = n_exec
         self.max_episode_steps = max_episode_steps

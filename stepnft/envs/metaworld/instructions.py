@@ -338,6 +338,15 @@ PARAPHRASES: dict[str, dict[str, tuple[str, ...]]] = {
 semantic suite) variants."""
 
 
+def task_instruction_variants(task: str, perturbations) -> tuple[list[str], dict[str, range]]:
+    """A task's instruction variants under ``perturbations`` (a
+    :class:`~stepnft.envs.perturbations.Perturbations`) and each semantic segment's indices."""
+    from stepnft.envs.perturbations import instruction_variants
+
+    paraphrases = paraphrases_for(task) if perturbations.semantic else {}
+    return instruction_variants(instruction_for(task), paraphrases, perturbations.semantic, perturbations.heldout)
+
+
 def paraphrases_for(task: str) -> dict[str, tuple[str, ...]]:
     """The ``train`` and ``heldout`` paraphrases of a MetaWorld v3 task's instruction."""
     if task not in PARAPHRASES:
