@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import dataclasses
 import json
 import sys
@@ -23,6 +24,7 @@ COMMANDS = {
     "train": "online RL (π-StepNFT by default) from an SFT policy (runs SFT first if --init is not given)",
     "eval": "deterministic (ODE) evaluation of a policy on fixed initial states, with 95 % CIs",
     "demo-bandit": "the core demo: π-StepNFT on a contextual bandit, success per iteration",
+    "compare": "algorithms and ablations (PPO, GRPO, ...) from the same SFT start on one env-step budget",
 }
 
 CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval")
@@ -44,7 +46,7 @@ class UsageError(Exception):
     """Bad input: reported as one line, exit code 2."""
 
 
-def _parse(cls, argv: list[str], default, prog: str):
+def _parse(cls, argv: list[str], default, prog: str, description: str | None = None):
     """Parse ``argv`` over ``default`` into ``cls``; a bad value raises ValueError.
 
     tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
@@ -52,10 +54,29 @@ def _parse(cls, argv: list[str], default, prog: str):
     """
     import tyro
 
-    with _validation_deferred(default):
-        parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
+    errors = io.StringIO()
+    try:
+        with _validation_deferred(default), contextlib.redirect_stderr(errors):
+            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
+    except SystemExit as stop:
+        if stop.code not in (0, None):
+            raise UsageError(f"{_first_message(errors.getvalue())}; see `{prog} --help`") from None
+        raise
     _validate(parsed)
     return parsed
+
+
+def _first_message(box: str) -> str:
+    """The first paragraph of tyro's boxed error message, as one line."""
+    lines = []
+    for line in box.splitlines()[1:]:
+        text = line.strip().strip("│╭╮╰╯").strip()
+        if set(text) <= set("─ "):
+            if lines:
+                break
+            continue
+        lines.append(text)
+    return " ".join(lines) or "invalid arguments"
 
 
 def _section_classes(obj) -> set[type]:
@@ -252,7 +273,14 @@ def cmd_demo_bandit(argv: list[str]) -> int:
     return 0
 
 
-HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit}
+def cmd_compare(argv: list[str]) -> int:
+    from stepnft.compare import CompareCommand, help_text, run_compare
+
+    return run_compare(_parse(CompareCommand, argv, CompareCommand(), "stepnft compare", help_text()))
+
+
+HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit,
+            "compare": cmd_compare}
 
 
 def _usage() -> str:
@@ -264,6 +292,8 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from stepnft.algos.base import RunDiverged
+
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
@@ -274,13 +304,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return HANDLERS[command](rest)
-    except SystemExit as stop:
-        # tyro ends --help with code 0 and its own argument errors (after printing them) with 2.
+    except SystemExit as stop:  # tyro ends --help with code 0
         return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
     except (UsageError, ValueError, OSError) as err:
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"stepnft {command}: error: {message}", file=sys.stderr)
         return 2
+    except RunDiverged as err:
+        print(f"stepnft {command}: error: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"stepnft {command}: interrupted; `stepnft train --resume RUN_DIR` continues a training run", file=sys.stderr)
         return 130
