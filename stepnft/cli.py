@@ -189,7 +189,8 @@ def cmd_demos(argv: list[str]) -> int:
     _writable_dir(args.demos.path, "--demos.path")
     path = generate_demos(tasks, args.demos.episodes, args.demos.path, seed=args.demos.seed,
                           action_noise=args.demos.action_noise, max_episode_steps=args.env.max_episode_steps,
-                          simulator=sim, max_attempts=args.demos.max_attempts)
+                          simulator=sim, max_attempts=args.demos.max_attempts, cameras=args.env.cameras,
+                          image_size=args.env.image_size)
     discarded = json.loads((path / "manifest.json").read_text())["generator"]["discarded"]
     print(f"wrote {args.demos.episodes} successful episodes x {len(tasks)} tasks to {path} "
           f"(failed expert attempts discarded: {sum(discarded.values())})")
@@ -213,35 +214,37 @@ def cmd_train(argv: list[str]) -> int:
 
 
 def cmd_eval(argv: list[str]) -> int:
-    from stepnft.envs import get_simulator, make_vec_env
-    from stepnft.evaluate import evaluate_policy, format_table, record_videos
+    from stepnft.envs import get_simulator
     from stepnft.envs.base import RenderingError
     from stepnft.policies.base import load_policy
     from stepnft.runs import write_atomic
+    from stepnft.suites import (check_suites, evaluate_suite, evaluate_suites, format_suite, format_suites,
+                                record_suite_videos)
 
     from stepnft.config import EvalCommand
 
     args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
     sim = get_simulator(args.env.name)
-    tasks = sim.validate_tasks(args.env.tasks)
+    args.env.tasks = sim.validate_tasks(args.env.tasks)
+    suites = check_suites(args.suite)
     policy = load_policy(args.policy)
     # Fail on an unwritable output before spending time on episodes.
     out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
     video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None
-    policy.processor.bind_instructions([sim.instruction(t) for t in tasks])
     if args.eval.episodes > 0:
-        venv = make_vec_env(args.env, policy.config.n_exec, seed=args.eval.seed)
-        try:
-            result = evaluate_policy(policy, venv, args.eval.episodes, args.eval.seed)
-        finally:
-            venv.close()
-        print(format_table(None, result))
+        if len(suites) == 1:
+            result = evaluate_suite(policy, args.env, suites[0], args.eval.episodes, args.eval.seed)
+            print(format_suite(result))
+        else:
+            result = evaluate_suites(policy, args.env, suites, args.eval.episodes, args.eval.seed)
+            print(format_suites(result))
         if out:
             write_atomic(out, json.dumps(result, indent=2))
     if video_dir:
         try:
-            paths = record_videos(policy, sim, tasks, video_dir, seed=args.eval.seed, episodes=args.video_episodes,
-                                  max_episode_steps=args.env.max_episode_steps)
+            paths = [p for suite in suites
+                     for p in record_suite_videos(policy, args.env, suite, video_dir / suite if len(suites) > 1 else video_dir,
+                                                  seed=args.eval.seed, episodes=args.video_episodes)]
         except RenderingError as err:  # the machine, not the input: exit code 1
             print(f"stepnft eval: error: {err}", file=sys.stderr)
             return 1

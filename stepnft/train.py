@@ -26,8 +26,9 @@ from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
-from stepnft.envs import get_simulator, make_vec_env
-from stepnft.evaluate import evaluate_policy, format_table, tasks_below
+from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs.base import RenderingError
+from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks_below
 from stepnft.policies.base import Policy, load_policy, non_finite
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
@@ -48,9 +49,9 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             mark_run(run_dir, "train")
             save_config(cfg, run_dir / "config.yaml")
             policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
-                                              cfg.seed, run_dir / "lang_cache", log)
+                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env)
             policy.save_pretrained(run_dir / "sft_policy")
-        policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
+        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
         allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
         if resume:
@@ -126,9 +127,11 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             shutil.copytree(run_dir / "policy", run_dir / "best_policy", dirs_exist_ok=True)
         else:
             best_policy = load_policy(run_dir / "best_policy")
-            best_policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
+            best_policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
             best_after = evaluate(best_policy, cfg.eval.episodes, cfg.eval.seed)
         logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after, "test")})
+        if cfg.eval.videos:
+            _film(final, cfg, sim, tasks, run_dir, logger, env_steps, log)
         plot_learning_curve(run_dir)
         summary = {
             "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t], "best": best_after["tasks"][t]}
@@ -156,8 +159,9 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log)
+                                run_dir / "lang_cache", log, env_cfg=cfg.env)
         policy.save_pretrained(run_dir / "policy")
+        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
         log("SFT policy:\n" + format_table(None, result))
@@ -172,9 +176,10 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
-    if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
-        raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "
-                         f"--policy.state-dim {sim.state_dim} --policy.action-dim {sim.action_dim}")
+    state_dim = sim.state_dim_for(cfg.env.state_obs)
+    if cfg.policy.state_dim != state_dim or cfg.policy.action_dim != sim.action_dim:
+        raise ValueError(f"{sim.label} has {state_dim}-d states (env.state_obs {cfg.env.state_obs}) and "
+                         f"{sim.action_dim}-d actions: set --policy.state-dim {state_dim} --policy.action-dim {sim.action_dim}")
     created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
     if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone
@@ -217,6 +222,20 @@ def _evaluator(collector: Collector):
                 bar.refresh()
             return evaluate_policy(policy, collector.venv, episodes, seed, progress=progress)
     return evaluate
+
+
+def _film(policy: Policy, cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, logger: MetricLogger,
+          env_steps: int, log) -> None:
+    """``eval.videos`` ODE episodes per task from the test states into ``RUN/videos`` and
+    TensorBoard (a machine without offscreen rendering only loses the videos)."""
+    try:
+        paths = record_videos(policy, sim, tasks, run_dir / "videos", seed=cfg.eval.seed, episodes=cfg.eval.videos,
+                              max_episode_steps=cfg.env.max_episode_steps, env_options=env_options(cfg.env),
+                              on_video=lambda name, frames: logger.video(f"videos/{name}", frames, sim.control_hz,
+                                                                         env_steps))
+        log(f"wrote {len(paths)} videos to {run_dir / 'videos'}")
+    except RenderingError as err:
+        log(f"no videos: {err}")
 
 
 def _eval_record(result: dict, states: str) -> dict:

@@ -40,9 +40,28 @@ def get_simulator(name: str):
     return getattr(importlib.import_module(module), cls)()
 
 
-def make_vec_env(env_cfg, n_exec: int, seed: int):
+def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None):
     """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
-    ``n_exec`` actions; sub-env streams seeded from ``seed``."""
+    ``n_exec`` actions; sub-env streams seeded from ``seed``. ``perturbations``
+    (:class:`~stepnft.envs.perturbations.Perturbations`) replaces the config's training
+    randomisation (``env.randomize``), e.g. with a suite's held-out perturbations."""
     return get_simulator(env_cfg.name).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
-        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers)
+        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers,
+        **env_options(env_cfg, perturbations))
+
+
+def env_options(env_cfg, perturbations=None) -> dict:
+    """The chunk-env options an ``EnvConfig`` sets beyond the defaults: ``cameras`` and
+    ``image_size``, ``state_obs``, ``perturbations`` (default: its ``randomize`` list, training ranges)."""
+    from stepnft.envs.perturbations import Perturbations
+
+    perturbations = Perturbations(tuple(env_cfg.randomize)) if perturbations is None else perturbations
+    options: dict = {}
+    if env_cfg.cameras:
+        options |= {"cameras": list(env_cfg.cameras), "image_size": env_cfg.image_size}
+    if env_cfg.state_obs != "full":
+        options["state_obs"] = env_cfg.state_obs
+    if perturbations:
+        options["perturbations"] = perturbations
+    return options

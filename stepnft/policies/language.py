@@ -19,6 +19,8 @@ from torch import Tensor
 from stepnft.runs import write_atomic
 
 DEFAULT_ENCODER = "default"
+_LOADED: dict[str, object] = {}
+"""Frozen encoders loaded in this process, by path."""
 
 
 def resolve_encoder_path(name: str) -> str:
@@ -45,14 +47,15 @@ class LanguageEncoder:
             from sentence_transformers import SentenceTransformer
 
             path = resolve_encoder_path(self.name)
-            try:
-                self._model = SentenceTransformer(path, device="cpu")
-            except Exception as err:  # noqa: BLE001 - many loader errors; one clear message
-                raise ValueError(
-                    f"cannot load language encoder {self.name!r} offline ({type(err).__name__}); "
-                    "give a local sentence-transformers folder or 'default'"
-                ) from err
-            self._model.eval()
+            if path not in _LOADED:  # once per process: suites and evaluations rebind often
+                try:
+                    _LOADED[path] = SentenceTransformer(path, device="cpu").eval()
+                except Exception as err:  # noqa: BLE001 - many loader errors; one clear message
+                    raise ValueError(
+                        f"cannot load language encoder {self.name!r} offline ({type(err).__name__}); "
+                        "give a local sentence-transformers folder or 'default'"
+                    ) from err
+            self._model = _LOADED[path]
         return self._model
 
     @property
