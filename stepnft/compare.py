@@ -70,6 +70,12 @@ class CompareCommand:
     """Variant the paired differences are taken against (if compared; else the first)."""
     eval_episodes: int | None = None
     """Evaluation episodes per task before and after RL (None: the base config's)."""
+    suites: list[str] = field(default_factory=list)
+    """Also evaluate every final policy and every SFT start on these suites (ind, vision,
+    semantic, execution; space- or comma-separated): the table of IND / OOD success
+    (OUT/suites.md). Empty: no suite evaluation."""
+    suite_episodes: int = 50
+    """Episodes per task and suite for --suites."""
 
     def __post_init__(self) -> None:
         self.algos = list(dict.fromkeys(a.strip() for item in self.algos for a in item.split(",") if a.strip()))
@@ -84,6 +90,13 @@ class CompareCommand:
             raise ValueError(f"--jobs must be >= 0 and --env-steps >= 1, got {self.jobs}, {self.env_steps}")
         if self.eval_episodes is not None and self.eval_episodes < 1:
             raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        self.suites = [x.strip() for item in self.suites for x in item.split(",") if x.strip()]
+        if self.suites:
+            from stepnft.suites import check_suites
+
+            check_suites(self.suites)
+        if self.suite_episodes < 1:
+            raise ValueError(f"--suite-episodes must be >= 1, got {self.suite_episodes}")
 
 
 def help_text() -> str:
@@ -96,16 +109,17 @@ class Job:
     """One subprocess: the SFT of a seed or a variant's RL run."""
 
     name: str
-    """``sft_seedS`` or ``VARIANT_seedS``: its config, log and status key."""
+    """``sft_seedS``, ``VARIANT_seedS`` or ``suites_ROW_seedS``: its config, log and status key."""
     kind: str
-    """``sft`` or ``train``."""
+    """``sft``, ``train`` or ``eval`` (the suites of a finished policy)."""
     run_dir: Path
     config: object
     """The TrainConfig it starts from."""
 
 
 def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
-    """Check the settings and build the jobs: ``(SFT jobs, RL jobs, comparison folder)``."""
+    """Check the settings and build the jobs: ``(SFT jobs, RL jobs, comparison folder)``; with
+    ``--suites``, each SFT and RL job is followed by the suite evaluation of its policy."""
     from stepnft.config import load_config, to_dict
     from stepnft.envs import get_simulator
     from stepnft.runs import prepare_run_dir
@@ -146,6 +160,34 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
     return sft_jobs, run_jobs, out
 
 
+def suite_job(cmd: CompareCommand, job: Job, out: Path) -> Job:
+    """The suite evaluation of ``job``'s final policy (``stepnft eval --suite ...``)."""
+    row = SFT if job.kind == "sft" else job.name.rsplit("_seed", 1)[0]
+    run_dir = out / "suites" / row / f"seed{job.config.seed}"
+    argv = ["eval", "--policy", str(job.run_dir / "policy"), "--suite", *cmd.suites,
+            "--eval.episodes", str(cmd.suite_episodes), "--eval.seed", str(job.config.eval.seed),
+            "--out", str(run_dir / "suites.json"), *env_flags(job.config.env)]
+    return Job(f"suites_{row}_seed{job.config.seed}", "eval", run_dir, argv)
+
+
+def env_flags(env) -> list[str]:
+    """Command-line flags that rebuild ``env`` (fields left at their defaults are omitted)."""
+    default = type(env)()
+    flags = []
+    for f in dataclasses.fields(env):
+        value = getattr(env, f.name)
+        if value == getattr(default, f.name):
+            continue
+        flag = "--env." + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            flags.append(flag if value else "--env.no-" + f.name.replace("_", "-"))
+        elif isinstance(value, (list, tuple)):
+            flags += [flag, *map(str, value)] if value else []
+        else:
+            flags += [flag, str(value)]
+    return flags
+
+
 def _flat(tree: dict, prefix: str = "") -> dict:
     flat = {}
     for k, v in tree.items():
@@ -172,6 +214,8 @@ def _check_same_settings(path: Path, settings: dict) -> None:
 # --- running ------------------------------------------------------------------------------------
 def job_state(job: Job) -> str:
     """``finished``, ``resumable`` (a checkpoint to continue from) or ``fresh``."""
+    if job.kind == "eval":
+        return "finished" if (job.run_dir / "suites.json").is_file() else "fresh"
     if job.kind == "sft":
         return "finished" if (job.run_dir / "summary.json").is_file() and (job.run_dir / "policy").is_dir() else "fresh"
     if (job.run_dir / "summary.json").is_file():
@@ -195,7 +239,10 @@ class JobRunner:
         state = job_state(job)
         if state == "finished":
             return {"rc": 0, "wall_clock_s": 0.0, "skipped": True}
-        if state == "resumable":
+        if job.kind == "eval":
+            job.run_dir.mkdir(parents=True, exist_ok=True)
+            argv = list(job.config)
+        elif state == "resumable":
             argv = [job.kind, "--resume", str(job.run_dir)]
         else:
             if job.run_dir.exists():  # a start that died before its first checkpoint: nothing to keep
@@ -239,11 +286,12 @@ def run_compare(cmd: CompareCommand, log: Callable[[str], None] = print) -> int:
     from stepnft.runs import write_atomic
 
     sft_jobs, run_jobs, out = plan(cmd)
+    suite_jobs = {j.name: suite_job(cmd, j, out) for j in sft_jobs + run_jobs} if cmd.suites else {}
     status_path = out / "status.json"
     status = json.loads(status_path.read_text()) if status_path.is_file() else {}
     jobs = cmd.jobs or os.cpu_count() or 1
     runs_of_seed = {sft.name: [j for j in run_jobs if j.config.seed == sft.config.seed] for sft in sft_jobs}
-    total = len(sft_jobs) + len(run_jobs)
+    total = len(sft_jobs) + len(run_jobs) + len(suite_jobs)
     log(f"comparing {', '.join(cmd.algos)} on {len(cmd.seeds)} seed(s): {total} jobs ({len(sft_jobs)} SFT), "
         f"{jobs} at once, in {out}")
     completed = 0
@@ -284,7 +332,8 @@ def run_compare(cmd: CompareCommand, log: Callable[[str], None] = print) -> int:
                 job = pending.pop(future)
                 result = future.result()
                 record(job, result)
-                for run in runs_of_seed.get(job.name, []):
+                follow = runs_of_seed.get(job.name, []) + ([suite_jobs[job.name]] if job.name in suite_jobs else [])
+                for run in follow:
                     if result["rc"] == 0:
                         pending[pool.submit(runner.run, run)] = run
                     else:
@@ -304,8 +353,9 @@ def run_compare(cmd: CompareCommand, log: Callable[[str], None] = print) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
     pool.shutdown()
     write_report(cmd, out, status)
-    log(f"wrote {out / 'comparison.md'}, comparison.csv, comparison.png")
-    return 0 if all(status.get(j.name, {}).get("state") == "finished" for j in sft_jobs + run_jobs) else 1
+    log(f"wrote {out / 'comparison.md'}, comparison.csv, comparison.png" + (", suites.md" if cmd.suites else ""))
+    everything = sft_jobs + run_jobs + list(suite_jobs.values())
+    return 0 if all(status.get(j.name, {}).get("state") == "finished" for j in everything) else 1
 
 
 # --- the report ---------------------------------------------------------------------------------
@@ -345,8 +395,11 @@ def load_result(run_dir: Path) -> dict | None:
     return {"success": {t: v["after"]["success"] for t, v in summary["tasks"].items()} | {
                 "average": summary["average"]["after"]},
             "env_steps": summary["env_steps"],
-            "curve": [(r["env_steps"], r["charts/success_rate"]) for r in records
-                      if r.get("charts/success_rate") is not None],
+            # Test states before and after, validation states during training.
+            "curve": [(r["env_steps"], r.get("charts/validation_success_rate", r.get("charts/success_rate")))
+                      for r in records if not r.get("final") and
+                      r.get("charts/validation_success_rate", r.get("charts/success_rate")) is not None]
+                     + [(summary["env_steps"], summary["average"]["after"])],
             "samples_per_s": samples / update_s if update_s > 0 else math.nan}
 
 
@@ -464,7 +517,42 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
                              *("" if isinstance(x, float) and math.isnan(x) else round(x, 4) for x in numbers)])
     write_atomic(out / "comparison.csv", buffer.getvalue())
     plot_comparison(summary, settings["env_step_budget"], out / "comparison.png")
+    if cmd.suites:
+        write_suites_report(cmd, out, summary["reference"])
     return summary
+
+
+def write_suites_report(cmd: CompareCommand, out: Path, reference: str) -> dict:
+    """``suites.md``: success per suite and the OOD average (mean [95 % t-interval] over seeds)
+    per algorithm, and the paired OOD difference to the reference (the paper's table shape)."""
+    from stepnft.runs import write_atomic
+    from stepnft.suites import SUITE_NAMES, summarize_suites
+
+    columns = [*SUITE_NAMES, "ood_average"]
+    table = {}
+    for row in [SFT, *cmd.algos]:
+        per_seed = {}
+        for seed in cmd.seeds:
+            path = out / "suites" / row / f"seed{seed}" / "suites.json"
+            if path.is_file():
+                data = json.loads(path.read_text())  # one suite's result, or several under "suites"
+                per_seed[seed] = summarize_suites(data["suites"] if "suites" in data else {data["suite"]: data})
+        table[row] = per_seed
+    lines = [f"# Suites: {', '.join(cmd.suites)}", "", f"    {command_line(cmd)}", "",
+             f"ODE evaluation of each final policy (and each SFT start), {cmd.suite_episodes} episodes per task and "
+             "suite; mean over seeds [95 % t-interval]. OOD average: the mean of the vision, semantic and execution "
+             f"suites that apply. Δ OOD: paired difference to `{reference}`.", "",
+             "| algorithm | seeds | " + " | ".join(columns) + f" | Δ OOD vs {reference} |", "|---" * (len(columns) + 3) + "|"]
+    for row, per_seed in table.items():
+        cells = [_cell(mean_ci([r[c] for r in per_seed.values() if r[c] is not None], 0.0, 1.0)) for c in columns]
+        ref = table.get(reference, {})
+        paired = [per_seed[s]["ood_average"] - ref[s]["ood_average"] for s in per_seed
+                  if s in ref and row != reference and per_seed[s]["ood_average"] is not None
+                  and ref[s]["ood_average"] is not None]
+        delta = _cell(mean_ci(paired, -1.0, 1.0), signed=True) if paired else "–"
+        lines.append(f"| {'SFT (start)' if row == SFT else row} | {len(per_seed)} | " + " | ".join(cells) + f" | {delta} |")
+    write_atomic(out / "suites.md", "\n".join(lines) + "\n")
+    return table
 
 
 def plot_comparison(summary: dict, budget: int, path: Path) -> None:

@@ -127,3 +127,16 @@ def test_confidence_intervals():
     mean, lo, hi = mean_ci([0.2, 0.4, 0.6])
     assert mean == pytest.approx(0.4) and hi - mean == pytest.approx(4.303 * 0.2 / 3**0.5)
     assert mean_ci([0.9, 1.0, 1.0], 0.0, 1.0)[2] == 1.0 and mean_ci([0.5])[1] != mean_ci([0.5])[1]  # NaN
+
+
+def test_suites_evaluate_every_final_policy_and_the_sft_start(tmp_path):
+    base = bandit_base(tmp_path / "base.yaml", envs=128)
+    out = tmp_path / "out"
+    argv = ["compare", "--config", str(base), "--algos", "stepnft", "--seeds", "0", "--env-steps", str(128 * 2),
+            "--jobs", "2", "--out", str(out), "--suites", "ind", "--suite-episodes", "128"]
+    assert main(argv) == 0
+    for row in ("sft", "stepnft"):
+        result = json.loads((out / "suites" / row / "seed0" / "suites.json").read_text())
+        assert result["suite"] == "ind" and result["tasks"]["bandit"]["episodes"] == 128
+    report = (out / "suites.md").read_text()
+    assert "| SFT (start) | 1 |" in report and "| stepnft | 1 |" in report and "ood_average" in report
