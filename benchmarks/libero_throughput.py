@@ -23,12 +23,13 @@ import numpy as np
 from stepnft.config import EnvConfig
 from stepnft.envs import get_simulator, make_vec_env
 
+AGENTVIEW = {"cameras": ["agentview"], "image_size": 128}
 SETTINGS = {
-    "state only (no camera)": dict(options={"image_size": 0}, n_exec=5),
-    "agentview 128 px, rendered once per chunk of 5": dict(options={"image_size": 128}, n_exec=5),
-    "agentview 128 px, rendered every step": dict(options={"image_size": 128}, n_exec=1),
-    "agentview + wrist 128 px, once per chunk of 5": dict(options={"image_size": 128, "wrist_camera": 1}, n_exec=5),
-    "agentview 128 px, per chunk of 5, no shadows": dict(options={"image_size": 128, "shadows": 0}, n_exec=5),
+    "state only (no camera)": dict(options={}, n_exec=5),
+    "agentview 128 px, rendered once per chunk of 5": dict(options=AGENTVIEW, n_exec=5),
+    "agentview 128 px, rendered every step": dict(options=AGENTVIEW, n_exec=1),
+    "agentview + wrist 128 px, once per chunk of 5": dict(
+        options={"cameras": ["agentview", "robot0_eye_in_hand"], "image_size": 128}, n_exec=5),
 }
 
 
@@ -43,9 +44,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def time_env(task: str, options: dict, n_exec: int, steps: int) -> dict:
-    sim = get_simulator("libero", options)
     t0 = time.perf_counter()
-    env = sim.make_env(task, n_exec=n_exec, max_episode_steps=10**6, terminate_on_success=False)
+    env = get_simulator("libero").make_env(task, n_exec=n_exec, max_episode_steps=10**6, terminate_on_success=False,
+                                           **options)
     built = time.perf_counter() - t0
     try:
         t0 = time.perf_counter()
@@ -62,8 +63,7 @@ def time_env(task: str, options: dict, n_exec: int, steps: int) -> dict:
 
 
 def time_vector_env(task: str, workers: int, steps: int) -> dict:
-    cfg = EnvConfig(name="libero", tasks=[task], envs_per_task=2 * workers, num_workers=workers,
-                    options={"image_size": 0})
+    cfg = EnvConfig(name="libero", tasks=[task], envs_per_task=2 * workers, num_workers=workers)
     t0 = time.perf_counter()
     venv = make_vec_env(cfg, n_exec=5, seed=0)
     built = time.perf_counter() - t0
@@ -82,7 +82,7 @@ def time_vector_env(task: str, workers: int, steps: int) -> dict:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    sim = get_simulator("libero", {"image_size": 0})
+    sim = get_simulator("libero")
     load_before = os.getloadavg()
     rows = []
     for suite in args.suites:

@@ -8,7 +8,8 @@ table      rows   keys
 episodes   E      ``episode_success`` bool, ``episode_task`` int64, ``episode_length`` int64 (env
                   steps), ``episode_seed`` int64 (the reset seed, -1 if the reset was unseeded)
 calls      C      one row per policy call: ``obs`` (dict: ``state`` float32 [C, S], ``task``
-                  int64 [C], later ``image``), ``actions`` float32 [C, H, A] (the sampled chunk),
+                  int64 [C], with cameras ``image`` uint8 [C, V, 3, H, W], with semantic
+                  perturbations ``instruction`` int64 [C]), ``actions`` float32 [C, H, A] (the sampled chunk),
                   ``mask`` bool [C, H] (positions executed), ``reward`` float32 [C] (summed over
                   the executed steps), ``done`` bool [C] (the episode ended in this call),
                   ``episode`` int64 [C] (its row in the episode table)
@@ -32,15 +33,12 @@ EPISODE_KEYS = ("episode_success", "episode_task", "episode_length", "episode_se
 CALL_KEYS = ("actions", "mask", "reward", "done", "episode")
 STEP_KEYS = ("call", "x_t", "x_next", "v_old", "t", "dt")
 OBS_KEYS = ("state", "task")
-"""Observation keys every simulator provides (camera simulators add ``image``, and LIBERO's
-wrist camera ``wrist_image``)."""
-CAMERA_KEYS = ("image", "wrist_image")
-"""Camera observations: uint8 [C, H, W, 3]."""
+"""Observation keys every simulator provides (camera simulators add ``image``)."""
 
 _DTYPES = {
     "episode_success": torch.bool, "episode_task": torch.int64, "episode_length": torch.int64,
     "episode_seed": torch.int64, "mask": torch.bool, "done": torch.bool, "episode": torch.int64,
-    "call": torch.int64, "task": torch.int64,
+    "call": torch.int64, "task": torch.int64, "instruction": torch.int64, "image": torch.uint8,
 }
 
 
@@ -126,7 +124,7 @@ class Batch:
             shape = tuple(value.shape) if torch.is_tensor(value) else type(value).__name__
             raise ValueError(f"batch key {key!r} must have {rows} rows (the {table} table), got {shape}")
         want = _DTYPES.get(key, torch.float32)
-        if key != "state" and key not in CAMERA_KEYS and value.dtype != want:
+        if key != "state" and value.dtype != want:
             raise ValueError(f"batch key {key!r} must be {want}, got {value.dtype}")
 
     @classmethod

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import dataclasses
 import json
 import sys
@@ -23,6 +24,7 @@ COMMANDS = {
     "train": "online RL (π-StepNFT by default) from an SFT policy (runs SFT first if --init is not given)",
     "eval": "deterministic (ODE) evaluation of a policy on fixed initial states, with 95 % CIs",
     "demo-bandit": "the core demo: π-StepNFT on a contextual bandit, success per iteration",
+    "compare": "algorithms and ablations (PPO, GRPO, ...) from the same SFT start on one env-step budget",
 }
 
 CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval")
@@ -44,7 +46,7 @@ class UsageError(Exception):
     """Bad input: reported as one line, exit code 2."""
 
 
-def _parse(cls, argv: list[str], default, prog: str):
+def _parse(cls, argv: list[str], default, prog: str, description: str | None = None):
     """Parse ``argv`` over ``default`` into ``cls``; a bad value raises ValueError.
 
     tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
@@ -52,10 +54,29 @@ def _parse(cls, argv: list[str], default, prog: str):
     """
     import tyro
 
-    with _validation_deferred(default):
-        parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
+    errors = io.StringIO()
+    try:
+        with _validation_deferred(default), contextlib.redirect_stderr(errors):
+            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
+    except SystemExit as stop:
+        if stop.code not in (0, None):
+            raise UsageError(f"{_first_message(errors.getvalue())}; see `{prog} --help`") from None
+        raise
     _validate(parsed)
     return parsed
+
+
+def _first_message(box: str) -> str:
+    """The first paragraph of tyro's boxed error message, as one line."""
+    lines = []
+    for line in box.splitlines()[1:]:
+        text = line.strip().strip("│╭╮╰╯").strip()
+        if set(text) <= set("─ "):
+            if lines:
+                break
+            continue
+        lines.append(text)
+    return " ".join(lines) or "invalid arguments"
 
 
 def _section_classes(obj) -> set[type]:
@@ -163,12 +184,13 @@ def cmd_demos(argv: list[str]) -> int:
     from stepnft.config import DemosCommand
 
     args = _parse(DemosCommand, _translate_legacy(argv, "demos"), DemosCommand(), "stepnft demos")
-    sim = get_simulator(args.env.name, args.env.options)
+    sim = get_simulator(args.env.name)
     tasks = sim.validate_tasks(args.env.tasks)
     _writable_dir(args.demos.path, "--demos.path")
     path = generate_demos(tasks, args.demos.episodes, args.demos.path, seed=args.demos.seed,
                           action_noise=args.demos.action_noise, max_episode_steps=args.env.max_episode_steps,
-                          simulator=sim, max_attempts=args.demos.max_attempts)
+                          simulator=sim, max_attempts=args.demos.max_attempts, cameras=args.env.cameras,
+                          image_size=args.env.image_size)
     discarded = json.loads((path / "manifest.json").read_text())["generator"]["discarded"]
     print(f"wrote {args.demos.episodes} successful episodes x {len(tasks)} tasks to {path} "
           f"(failed expert attempts discarded: {sum(discarded.values())})")
@@ -192,35 +214,37 @@ def cmd_train(argv: list[str]) -> int:
 
 
 def cmd_eval(argv: list[str]) -> int:
-    from stepnft.envs import get_simulator, make_vec_env
-    from stepnft.evaluate import evaluate_policy, format_table, record_videos
+    from stepnft.envs import get_simulator
     from stepnft.envs.base import RenderingError
     from stepnft.policies.base import load_policy
     from stepnft.runs import write_atomic
+    from stepnft.suites import (check_suites, evaluate_suite, evaluate_suites, format_suite, format_suites,
+                                record_suite_videos)
 
     from stepnft.config import EvalCommand
 
     args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
-    sim = get_simulator(args.env.name, args.env.options)
-    tasks = sim.validate_tasks(args.env.tasks)
+    sim = get_simulator(args.env.name)
+    args.env.tasks = sim.validate_tasks(args.env.tasks)
+    suites = check_suites(args.suite)
     policy = load_policy(args.policy)
     # Fail on an unwritable output before spending time on episodes.
     out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
     video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None
-    policy.processor.bind_instructions([sim.instruction(t) for t in tasks])
     if args.eval.episodes > 0:
-        venv = make_vec_env(args.env, policy.config.n_exec, seed=args.eval.seed)
-        try:
-            result = evaluate_policy(policy, venv, args.eval.episodes, args.eval.seed)
-        finally:
-            venv.close()
-        print(format_table(None, result))
+        if len(suites) == 1:
+            result = evaluate_suite(policy, args.env, suites[0], args.eval.episodes, args.eval.seed)
+            print(format_suite(result))
+        else:
+            result = evaluate_suites(policy, args.env, suites, args.eval.episodes, args.eval.seed)
+            print(format_suites(result))
         if out:
             write_atomic(out, json.dumps(result, indent=2))
     if video_dir:
         try:
-            paths = record_videos(policy, sim, tasks, video_dir, seed=args.eval.seed, episodes=args.video_episodes,
-                                  max_episode_steps=args.env.max_episode_steps)
+            paths = [p for suite in suites
+                     for p in record_suite_videos(policy, args.env, suite, video_dir / suite if len(suites) > 1 else video_dir,
+                                                  seed=args.eval.seed, episodes=args.video_episodes)]
         except RenderingError as err:  # the machine, not the input: exit code 1
             print(f"stepnft eval: error: {err}", file=sys.stderr)
             return 1
@@ -249,7 +273,14 @@ def cmd_demo_bandit(argv: list[str]) -> int:
     return 0
 
 
-HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit}
+def cmd_compare(argv: list[str]) -> int:
+    from stepnft.compare import CompareCommand, help_text, run_compare
+
+    return run_compare(_parse(CompareCommand, argv, CompareCommand(), "stepnft compare", help_text()))
+
+
+HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit,
+            "compare": cmd_compare}
 
 
 def _usage() -> str:
@@ -261,6 +292,8 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from stepnft.algos.base import RunDiverged
+
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
@@ -271,13 +304,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return HANDLERS[command](rest)
-    except SystemExit as stop:
-        # tyro ends --help with code 0 and its own argument errors (after printing them) with 2.
+    except SystemExit as stop:  # tyro ends --help with code 0
         return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
     except (UsageError, ValueError, OSError) as err:
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"stepnft {command}: error: {message}", file=sys.stderr)
         return 2
+    except RunDiverged as err:
+        print(f"stepnft {command}: error: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"stepnft {command}: interrupted; `stepnft train --resume RUN_DIR` continues a training run", file=sys.stderr)
         return 130

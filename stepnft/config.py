@@ -14,6 +14,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import yaml
 
@@ -21,6 +22,7 @@ from stepnft.algos.base import AlgoConfig, config_class
 from stepnft.algos.sft import SFTConfig
 from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.envs import DEFAULT_TASKS, SIMULATORS
+from stepnft.envs.perturbations import FAMILY, expand
 from stepnft.policies.flow import FlowPolicyConfig
 
 
@@ -42,14 +44,33 @@ class EnvConfig:
     num_workers: int = 0
     """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
     cores of a 2-core machine)."""
-    options: dict[str, int] = field(default_factory=dict)
-    """The simulator's own settings as name value pairs (LIBERO: image_size 128, wrist_camera 0,
-    shadows 1, settle_steps 10; docs/libero.md)."""
+    cameras: list[str] = field(default_factory=list)
+    """Cameras rendered into the observation ``image`` once per policy call (MetaWorld: corner,
+    corner2, corner3, corner4, topview, behindGripper, gripperPOV; empty: state only). Needs
+    MUJOCO_GL=egl; the policy's --policy.cameras must match."""
+    image_size: int = 64
+    """Side in pixels of the square camera images."""
+    state_obs: Literal["full", "proprio"] = "full"
+    """State observation: full (MetaWorld's 39 values, object and goal positions included) or
+    proprio (hand xyz and gripper opening only: for camera policies; --policy.state-dim 4)."""
+    randomize: list[str] = field(default_factory=list)
+    """Perturbations randomised in every training episode, from their training ranges (never
+    the held-out ones the suites use): suite names (vision, semantic, execution) or single
+    perturbations (table_color, floor_color, object_color, lighting, camera_pose, paraphrase,
+    distractor, object_position, action_noise, friction, mass); see docs/ood.md."""
 
     def __post_init__(self) -> None:
         if isinstance(self.tasks, str):
             self.tasks = [self.tasks]
         self.tasks = [t.strip() for item in self.tasks for t in item.split(",") if t.strip()]
+        self.cameras = _names(self.cameras)
+        self.randomize = list(expand(_names(self.randomize)))
+        if self.cameras and not 8 <= self.image_size <= 480:
+            raise ValueError(f"env.image_size must be in 8..480, got {self.image_size}")
+        if self.state_obs not in ("full", "proprio"):
+            raise ValueError(f"env.state_obs must be full or proprio, got {self.state_obs!r}")
+        if not self.cameras and any(FAMILY[n] == "vision" for n in self.randomize):
+            raise ValueError("env.randomize vision perturbations change only camera images: set --env.cameras too")
         if self.name not in SIMULATORS:
             raise ValueError(f"env.name={self.name!r} is unknown; choose one of: {', '.join(SIMULATORS)}")
         if self.envs_per_task < 1:
@@ -104,16 +125,27 @@ class EvalConfig:
     episodes: int = 100
     """Episodes per task for the before/after figures (>= 100 for reported numbers)."""
     seed: int = 0
-    """Episode e of a task starts from initial state ``seed + e``: the same for every checkpoint."""
+    """Test episode e of a task starts from initial state ``seed + e``: the same for every checkpoint."""
     every: int = 10
-    """Iterations between evaluations during training (0: only before and after)."""
+    """Iterations between validation evaluations during training (0: only before and after)."""
     during_episodes: int = 20
-    """Episodes per task for the evaluations during training (cheap, noisier)."""
+    """Episodes per task for the validation evaluations during training (cheap, noisier)."""
+    validation_seed: int = 1_000_000
+    """Validation episode e starts from initial state ``validation_seed + e``: disjoint from the
+    test states, so choosing ``best_policy/`` on them does not bias the reported figures."""
+    videos: int = 0
+    """Episodes per task filmed after the final evaluation, into RUN/videos/*.mp4 and TensorBoard
+    (camera policies: what the policy saw beside the scene); needs MUJOCO_GL=egl. 0: none."""
 
     def __post_init__(self) -> None:
         if self.episodes < 0 or self.every < 0 or self.during_episodes < 1 or self.seed < 0:
             raise ValueError(f"eval.episodes, eval.every and eval.seed must be >= 0 and eval.during_episodes >= 1, got "
                              f"{self.episodes}, {self.every}, {self.seed}, {self.during_episodes}")
+        if self.validation_seed < self.seed + self.episodes:
+            raise ValueError(f"eval.validation_seed ({self.validation_seed}) must be >= eval.seed + eval.episodes "
+                             f"({self.seed + self.episodes}): validation and test states must not overlap")
+        if self.videos < 0:
+            raise ValueError(f"eval.videos must be >= 0, got {self.videos}")
 
 
 @dataclass
@@ -127,7 +159,13 @@ class TrainConfig:
     iterations: int = 60
     """RL iterations: collect rollouts -> update -> end-of-iteration step (e.g. the EMA update)."""
     episodes_per_iteration: int = 20
-    """Episodes collected per iteration (rounded up to whole waves of all parallel envs)."""
+    """Episodes collected per iteration (with ``task_allocation: equal``, rounded up to whole
+    waves of all parallel envs)."""
+    task_allocation: Literal["equal", "informative"] = "equal"
+    """How an iteration's episodes are split over tasks: ``equal``, or ``informative`` (more to
+    tasks whose rollout success is far from 0 and 1; see stepnft.rollout.allocation)."""
+    allocation_floor: float = 0.3
+    """With ``informative``: the share of episodes split equally, so every task stays in play."""
     env_step_budget: int | None = None
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
@@ -151,11 +189,17 @@ class TrainConfig:
             "checkpoint_every": self.checkpoint_every >= 1,
             "num_threads": self.num_threads >= 1,
             "env_step_budget": self.env_step_budget is None or self.env_step_budget >= 1,
+            "allocation_floor": 0 <= self.allocation_floor <= 1,
+            "task_allocation": self.task_allocation in ("equal", "informative"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"{bad[0]}={getattr(self, bad[0])!r} is invalid: iterations must be >= 0, "
-                             "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1")
+                             "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1, "
+                             "allocation_floor in [0, 1]")
+        if self.policy.cameras != self.env.cameras:
+            raise ValueError(f"policy.cameras {self.policy.cameras} differ from env.cameras {self.env.cameras}: "
+                             "give both the same list (e.g. --config configs/image.yaml)")
 
 
 @dataclass
@@ -179,6 +223,10 @@ class EvalCommand:
     rendering: MUJOCO_GL=egl)."""
     video_episodes: int = 1
     """Episodes recorded per task with --video-dir (episode e starts from eval state seed + e)."""
+    suite: list[str] = field(default_factory=lambda: ["ind"])
+    """Evaluation suites: ind (the training distribution), vision, semantic, execution (held-out
+    perturbations, docs/ood.md); several give a table with the OOD average. The env's cameras
+    and state observation follow the policy."""
     env: EnvConfig = field(default_factory=EnvConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
@@ -186,6 +234,12 @@ class EvalCommand:
         if self.video_episodes < 1:
             raise ValueError(f"video_episodes must be >= 1, got {self.video_episodes}")
 
+
+
+def _names(value: str | list[str]) -> list[str]:
+    """A list of names from a list or a comma-separated string (flags and YAML alike)."""
+    items = [value] if isinstance(value, str) else value
+    return [n.strip() for item in items for n in item.split(",") if n.strip()]
 
 
 def to_dict(cfg) -> dict:

@@ -2,13 +2,16 @@
 
 Episode ``e`` of every task starts from initial state ``seed + e``, whatever the checkpoint or
 algorithm, so figures from different runs are paired. Success rates come with a Wilson 95 %
-confidence interval. :func:`record_videos` films ODE episodes from the same initial states.
+confidence interval. :func:`record_videos` films ODE episodes from the same initial states
+(for camera policies, what the policy saw beside the scene). Out-of-distribution suites are
+``stepnft.suites``.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +32,16 @@ def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress=None) -> dict:
+def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress=None,
+                    label: Callable[[int], str] | None = None) -> dict:
     """Success per task over ``episodes`` episodes each, ODE sampling.
 
     ``venv`` is a chunk vector env with the same number of sub-envs per task; each wave plays
     that many new episodes of every task. ``policy.processor`` must be bound to
-    ``venv.instructions``. Returns ``{"tasks": {task: {...}}, "average": rate, "episodes": per
-    task, "env_steps": total}``.
+    ``venv.instruction_variants`` (or ``venv.instructions``). Returns ``{"tasks": {task: {...}},
+    "average": rate, "episodes": per task, "env_steps": total}``; with ``label`` (the initial
+    state seed -> a group name, e.g. a suite's perturbation) also ``"breakdown": {group: {...}}``
+    over every task's episodes.
     """
     policy.eval()
     collector = Collector(venv)
@@ -47,6 +53,7 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
         slot[task_ids == k] = np.arange(per_task)
     successes = np.zeros(n_tasks, dtype=np.int64)
     counts = np.zeros(n_tasks, dtype=np.int64)
+    groups: dict[str, list[int]] = {}
     env_steps = 0
     waves = math.ceil(episodes / per_task)
     for w in range(waves):
@@ -56,16 +63,31 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
         valid = episode < episodes
         np.add.at(successes, task_ids[valid], wave.episode_success.numpy()[valid])
         np.add.at(counts, task_ids[valid], 1)
+        if label is not None:
+            for s, ok in zip(np.asarray(seeds)[valid], wave.episode_success.numpy()[valid]):
+                tally = groups.setdefault(label(int(s)), [0, 0])
+                tally[0], tally[1] = tally[0] + int(ok), tally[1] + 1
         env_steps += wave.env_steps
         if progress is not None:
             progress(w + 1, waves)
-    tasks = {}
-    for k, name in enumerate(venv.tasks):
-        lo, hi = wilson_interval(int(successes[k]), int(counts[k]))
-        tasks[name] = {"success": successes[k] / counts[k], "successes": int(successes[k]),
-                       "episodes": int(counts[k]), "ci95": [lo, hi]}
-    return {"tasks": tasks, "average": float(np.mean([v["success"] for v in tasks.values()])),
-            "episodes": episodes, "env_steps": env_steps}
+    tasks = {name: _rate(successes[k], counts[k]) for k, name in enumerate(venv.tasks)}
+    result = {"tasks": tasks, "average": float(np.mean([v["success"] for v in tasks.values()])),
+              "episodes": episodes, "env_steps": env_steps}
+    if label is not None:
+        result["breakdown"] = {g: _rate(k, n) for g, (k, n) in sorted(groups.items())}
+    return result
+
+
+def _rate(successes: int, episodes: int) -> dict:
+    lo, hi = wilson_interval(int(successes), int(episodes))
+    return {"success": float(successes / episodes), "successes": int(successes), "episodes": int(episodes),
+            "ci95": [lo, hi]}
+
+
+def tasks_below(before: dict, after: dict) -> list[str]:
+    """Tasks whose success after is below their success before by more than the after-CI
+    (the 95 % interval of ``after`` lies wholly below ``before``'s rate)."""
+    return [t for t, r in after["tasks"].items() if r["ci95"][1] < before["tasks"][t]["success"]]
 
 
 def episode_generators(seeds: list[int]) -> list[torch.Generator]:
@@ -98,15 +120,20 @@ def record_videos(
     episodes: int = 1,
     max_episode_steps: int = 200,
     size: tuple[int, int] = (224, 224),
+    env_options: dict | None = None,
+    on_video: Callable[[str, list[np.ndarray]], None] | None = None,
 ) -> list[Path]:
     """Film ODE episodes as ``out_dir/<task>_ep<e>_<success|fail>.mp4``; returns the paths.
 
     Episode ``e`` of a task starts from evaluation initial state ``seed + e`` with the sampler
     noise of that episode in :func:`evaluate_policy`. A
     frame at reset and one after every env step (the chunk's actions are played one at a
-    time), at the simulator's real-time rate. ``policy.processor`` must be bound to ``tasks``'
-    instructions, in order. Raises :class:`~stepnft.envs.base.RenderingError` without
-    offscreen rendering.
+    time), at the simulator's real-time rate. ``env_options`` (``stepnft.envs.env_options``:
+    cameras, state, perturbations) build the filmed env like the evaluated one; for a camera
+    policy each frame shows, right of the scene, the views the policy was last called with.
+    ``policy.processor`` must be bound to ``tasks``' instructions (or instruction variants), in
+    order. ``on_video(name, frames)`` receives each episode's frames (e.g. for TensorBoard).
+    Raises :class:`~stepnft.envs.base.RenderingError` without offscreen rendering.
     """
     import imageio.v2 as imageio
 
@@ -116,7 +143,8 @@ def record_videos(
     policy.eval()
     paths = []
     for k, task in enumerate(tasks):
-        env = simulator.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, render_size=size)
+        env = simulator.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, render_size=size,
+                                 **(env_options or {}))
         try:
             for e in range(episodes):
                 frames, success = _play_filmed(policy, env, k, seed + e, episode_generators([seed + e])[0])
@@ -129,6 +157,8 @@ def record_videos(
                 os.replace(tmp, path)
                 (out_dir / f"{task}_ep{e}_{'fail' if success else 'success'}.mp4").unlink(missing_ok=True)
                 paths.append(path)
+                if on_video is not None:
+                    on_video(path.stem, frames)
         finally:
             env.close()  # frees the GL context now; MuJoCo's EGL complains if left to __del__
     return paths
@@ -136,17 +166,33 @@ def record_videos(
 
 def _play_filmed(policy: Policy, env, task_index: int, seed: int,
                  generator: torch.Generator) -> tuple[list[np.ndarray], bool]:
-    """One ODE episode on a one-action chunk env; frames ``[H, W, 3]`` uint8 and its success."""
+    """One ODE episode on a one-action chunk env; frames ``[H, W, 3]`` uint8 (the scene, and
+    right of it the camera views of the last policy call, if any) and its success."""
     obs, info = env.reset(seed=seed)
-    frames = [env.render()]
+    seen = obs.get("image")
+    frames = [_beside(env.render(), seen)]
     done = False
     while not done:
-        raw = {k: torch.as_tensor(v[None]) for k, v in obs.items()} | {"task": torch.tensor([task_index])}
+        raw = {k: torch.as_tensor(np.asarray(v)[None]) for k, v in obs.items()} | {"task": torch.tensor([task_index])}
+        seen = obs.get("image")
         sample = policy.sample(policy.processor(raw), noise_level=0.0, generator=generator)
         for action in sample.actions[0, : policy.config.n_exec].clamp(-1.0, 1.0).numpy():
             obs, _, terminated, truncated, info = env.step(action[None])
-            frames.append(env.render())
+            frames.append(_beside(env.render(), seen))
             done = terminated or truncated
             if done:
                 break
     return frames, bool(info["success"])
+
+
+def _beside(scene: np.ndarray, views: np.ndarray | None) -> np.ndarray:
+    """The scene ``[H, W, 3]`` with camera views ``[V, 3, h, w]`` stacked right of it, each
+    enlarged by a whole factor (nearest pixel) to fill the height."""
+    if views is None:
+        return scene
+    height = scene.shape[0]
+    v, _, h, w = views.shape
+    k = max(1, height // (v * h))
+    panel = views.transpose(0, 2, 3, 1).repeat(k, axis=1).repeat(k, axis=2).reshape(v * h * k, w * k, 3)[:height]
+    panel = np.pad(panel, ((0, height - panel.shape[0]), (0, 0), (0, 0)))
+    return np.concatenate([scene, panel], axis=1)

@@ -9,11 +9,11 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
-from torch import Tensor
 from tqdm.auto import tqdm
 
 from stepnft.losses import flow_matching_loss
 from stepnft.policies.base import Policy, make_policy
+from stepnft.policies.vision import random_shift
 from stepnft.sampling import flow_matching_pair, sample_flow_time
 
 
@@ -35,6 +35,10 @@ class SFTConfig:
     """AdamW weight decay."""
     time_law: Literal["uniform", "beta"] = "uniform"
     """Law of the flow time t during training: ``uniform`` or ``beta`` (π0's)."""
+    image_shift: int = 4
+    """Random-shift augmentation of camera images (pixels, at the policy's image size): each
+    image is padded by replication and cropped back at a random offset (0: off). SFT only: in
+    RL updates v_old was computed on the unshifted views."""
 
     def __post_init__(self) -> None:
         self.adam_betas = tuple(self.adam_betas)
@@ -43,6 +47,8 @@ class SFTConfig:
         if not (len(self.adam_betas) == 2 and all(0 <= b < 1 for b in self.adam_betas) and self.adam_eps > 0
                 and self.weight_decay >= 0):
             raise ValueError("sft.adam_betas must be two values in [0, 1), sft.adam_eps > 0 and sft.weight_decay >= 0")
+        if self.image_shift < 0:
+            raise ValueError(f"sft.image_shift must be >= 0, got {self.image_shift}")
         if self.time_law not in ("uniform", "beta"):
             raise ValueError(f"sft.time_law must be 'uniform' or 'beta', got {self.time_law!r}")
 
@@ -72,6 +78,8 @@ def sft_train(
         noise = torch.randn(actions.shape, generator=generator)
         x_t, v_target = flow_matching_pair(actions, t, noise)
         obs = policy.processor({k: v[idx] for k, v in data["obs"].items()})
+        if "image" in obs:
+            obs["image"] = random_shift(obs["image"], cfg.image_shift, generator)
         loss = flow_matching_loss(policy.velocity(obs, x_t, t), v_target, data["mask"][idx])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -83,20 +91,31 @@ def sft_train(
 
 
 def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: list[str], max_episode_steps: int,
-                   seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print) -> Policy:
+                   seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
+                   env_cfg=None) -> Policy:
     """The SFT stage of a run: demonstrations (generated into ``demos_cfg.path`` if it holds
-    none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`."""
-    from stepnft.data.demos import demos_to_chunks, generate_demos, load_demos
+    none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`. ``env_cfg``
+    (an ``EnvConfig``) gives the cameras to record and the state the policy sees."""
+    from stepnft.data.demos import demo_cameras, demos_to_chunks, generate_demos, load_demos
 
     path = Path(demos_cfg.path)
-    if not (path / "manifest.json").is_file() and not simulator.has_dataset(path):
+    cameras = list(env_cfg.cameras) if env_cfg is not None else []
+    image_size = env_cfg.image_size if env_cfg is not None else 64
+    state_obs = env_cfg.state_obs if env_cfg is not None else "full"
+    # A simulator's own dataset (e.g. LIBERO's HDF5 files) is read at the env's cameras and size.
+    own_dataset = not (path / "manifest.json").is_file() and simulator.has_dataset(path)
+    if not (path / "manifest.json").is_file() and not own_dataset:
         count = max(demos_cfg.count(t) for t in tasks)
         log(f"generating {count} demonstrations per task into {path}")
         generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
                        max_episode_steps=max_episode_steps, simulator=simulator, max_attempts=demos_cfg.max_attempts,
-                       successful_only=demos_cfg.successful_only)
+                       successful_only=demos_cfg.successful_only, cameras=cameras, image_size=image_size)
+    if cameras and not own_dataset and demo_cameras(path) != (cameras, image_size):
+        recorded, size = demo_cameras(path)
+        raise ValueError(f"demonstrations in {path} were recorded with cameras {recorded} at {size} px, the env "
+                         f"renders {cameras} at {image_size} px: point --demos.path at a new folder to record them")
     keep = (lambda e: e.success) if demos_cfg.successful_only else (lambda e: True)  # noqa: E731
-    episodes = [e for e in load_demos(path, simulator) if e.task in tasks and keep(e)]
+    episodes = [e for e in load_demos(path, simulator, cameras, image_size) if e.task in tasks and keep(e)]
     per_task = {t: [e for e in episodes if e.task == t][: demos_cfg.count(t)] for t in tasks}
     short = [t for t, eps in per_task.items() if len(eps) < demos_cfg.count(t)]
     if short:
@@ -104,7 +123,8 @@ def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: 
                          f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
                          "larger N, or point --demos.path at a new folder")
     data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, policy_cfg.horizon,
-                           only_successful=demos_cfg.successful_only)
+                           only_successful=demos_cfg.successful_only,
+                           state_fn=lambda states: simulator.policy_state(states, state_obs), images=bool(cameras))
     policy = make_policy(policy_cfg)
     policy.processor.fit(data["obs"]["state"])
     policy.processor.bind_instructions([simulator.instruction(t) for t in tasks], cache_dir)

@@ -15,9 +15,15 @@ On-disk format, version 1 (a public contract; bump "version" when it changes):
         rewards       float32 [T]
         successes     bool    [T]        success reached by step t (the episode stops at
                                          the first success, so only the last can be True)
+        images        uint8   [T+1, V, 3, H, W]   only when generated with cameras: the camera
+                                         views of o_0 .. o_T (upright, H = W = image_size)
 
 ``generator`` also names the ``simulator`` (``metaworld`` when absent) and its ``state_dim`` and
-``action_dim`` (MetaWorld's 39 and 4 when absent). Files are written to a temporary name and
+``action_dim`` (MetaWorld's 39 and 4 when absent), and with cameras ``cameras`` (names, in view
+order) and ``image_size``. Files without images (and manifests without ``cameras``) are the same
+version-1 files as before images existed: they still load. Observations are always the
+simulator's full state: a policy that sees less (``env.state_obs proprio``) is given its part
+when SFT builds its chunks. Files are written to a temporary name and
 renamed, and the manifest last, so a crash never leaves a half-written file behind a valid
 manifest.
 
@@ -33,7 +39,7 @@ seeded below 2**32, so demo initial states never coincide with theirs.
 import dataclasses
 import json
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -67,9 +73,8 @@ class DemoEpisode:
     """bool [T]"""
     success: bool
     seed: int
-    images: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    """Camera frames by observation key, uint8 [T+1, H, W, 3] (only from datasets loaded with
-    images, e.g. a simulator's own formats: see :meth:`~stepnft.envs.base.Simulator.load_dataset`)."""
+    images: np.ndarray | None = None
+    """uint8 [T+1, V, 3, H, W] camera views, when generated with cameras"""
 
 
 def demo_seed(seed: int, episode: int) -> int:
@@ -88,6 +93,8 @@ def generate_demos(
     simulator="metaworld",
     max_attempts: int | None = None,
     successful_only: bool = True,
+    cameras: Sequence[str] = (),
+    image_size: int = 64,
 ) -> Path:
     """Runs the simulator's scripted expert until it has `episodes` successful episodes per
     task (at most `max_attempts` attempts per task, default 5 x `episodes`); returns `out_dir`.
@@ -95,7 +102,8 @@ def generate_demos(
 
     Episodes end at the first success or after `max_episode_steps` steps. Gaussian noise of
     std `action_noise` is added to each expert action before clipping to [-1, 1].
-    `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`.
+    `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`. With
+    `cameras`, every step's camera views are recorded too (``images``).
     """
     sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
     tasks = sim.validate_tasks(tasks)
@@ -109,13 +117,17 @@ def generate_demos(
     if not action_noise >= 0 or not np.isfinite(action_noise):
         raise ValueError(f"action_noise must be a finite number >= 0, got {action_noise}")
     out_dir = Path(out_dir)
+    if (out_dir / "manifest.json").is_file():
+        raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
+                         "(--demos.path), or delete that one to regenerate it")
     out_dir.mkdir(parents=True, exist_ok=True)
 
     entries, discarded = [], {}
     bar = tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0)
     for task in tasks:
+        camera_options = {"cameras": list(cameras), "image_size": image_size} if cameras else {}
         expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
-        env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps)
+        env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, **camera_options)
         # A noise stream per (seed, task), unaffected by which other tasks are generated.
         noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
         (out_dir / task).mkdir(exist_ok=True)
@@ -136,7 +148,7 @@ def generate_demos(
                             "length": len(episode.actions), "seed": episode.seed})
             kept += 1
             bar.update()
-            bar.set_postfix(task=task, discarded=attempts - kept)
+            bar.set_postfix(task=task, discarded=attempts - kept, refresh=False)
         discarded[task] = attempts - kept
         env.close()
     bar.close()
@@ -155,6 +167,7 @@ def generate_demos(
             "episodes_per_task": episodes, "max_attempts": max_attempts, "discarded": discarded,
             "seed": seed, "action_noise": action_noise, "max_episode_steps": max_episode_steps,
             "expert": f"{sim.name} scripted expert", "simulator_version": package_version,
+            **({"cameras": list(cameras), "image_size": image_size} if cameras else {}),
         },
     }
     write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1))
@@ -165,8 +178,9 @@ def _npz_bytes(episode: DemoEpisode) -> bytes:
     import io
 
     buffer = io.BytesIO()
+    images = {} if episode.images is None else {"images": episode.images}
     np.savez(buffer, observations=episode.observations, actions=episode.actions, rewards=episode.rewards,
-             successes=episode.successes)
+             successes=episode.successes, **images)
     return buffer.getvalue()
 
 
@@ -174,6 +188,7 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
                 task: str) -> DemoEpisode:
     obs, _ = env.reset(seed=seed)
     observations, actions, rewards, successes = [obs["state"]], [], [], []
+    images = [obs["image"]] if "image" in obs else None
     done = False
     while not done:
         action = np.asarray(expert.act(obs), dtype=np.float64)
@@ -182,6 +197,8 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
         action = np.clip(action, -1.0, 1.0).astype(np.float32)
         obs, reward, terminated, truncated, info = env.step(action[None])
         observations.append(obs["state"])
+        if images is not None:
+            images.append(obs["image"])
         actions.append(action)
         rewards.append(reward)
         successes.append(info["success"])
@@ -195,17 +212,19 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
         successes=np.asarray(successes, dtype=bool),
         success=bool(successes[-1]),
         seed=seed,
+        images=None if images is None else np.stack(images),
     )
 
 
-def load_demos(path: str | Path, simulator=None, images: bool = False) -> list[DemoEpisode]:
+def load_demos(path: str | Path, simulator=None, cameras: Sequence[str] = (), image_size: int = 64
+               ) -> list[DemoEpisode]:
     """Loads every episode listed in `path/manifest.json`, in manifest order; without a manifest,
-    the demonstrations in `simulator`'s own format(s) there (e.g. LIBERO's HDF5 files), with
-    their camera frames if `images`."""
+    the demonstrations in `simulator`'s own format(s) there (e.g. LIBERO's HDF5 files), with the
+    views of `cameras` at `image_size` (a manifest's episodes carry the views they were recorded with)."""
     path = Path(path)
     manifest_path = path / "manifest.json"
     if not manifest_path.is_file() and simulator is not None and simulator.has_dataset(path):
-        return simulator.load_dataset(path, images=images)
+        return simulator.load_dataset(path, cameras, image_size)
     if not manifest_path.is_file():
         raise FileNotFoundError(
             f"no demonstrations at {path}: run `stepnft demos --demos.path {path}` first"
@@ -217,7 +236,8 @@ def load_demos(path: str | Path, simulator=None, images: bool = False) -> list[D
             raise ValueError(f"expected format {FORMAT!r} version {VERSION}")
         generator = manifest.get("generator", {})
         dims = (generator.get("state_dim", METAWORLD_DIMS[0]), generator.get("action_dim", METAWORLD_DIMS[1]))
-        return [_load_episode(path, entry, dims) for entry in manifest["episodes"]]
+        views = (len(generator["cameras"]), generator["image_size"]) if generator.get("cameras") else None
+        return [_load_episode(path, entry, dims, views) for entry in manifest["episodes"]]
     except FileNotFoundError as e:
         raise FileNotFoundError(
             f"demonstrations at {path} are incomplete ({e}); {regenerate}"
@@ -229,12 +249,20 @@ def load_demos(path: str | Path, simulator=None, images: bool = False) -> list[D
         ) from None
 
 
-def _load_episode(root: Path, entry: dict, dims: tuple[int, int]) -> DemoEpisode:
+def demo_cameras(path: str | Path) -> tuple[list[str], int | None]:
+    """The cameras (names, in view order) and image size the demonstrations at ``path`` were
+    recorded with (``[], None`` without images)."""
+    generator = json.loads((Path(path) / "manifest.json").read_text()).get("generator", {})
+    return list(generator.get("cameras", [])), generator.get("image_size")
+
+
+def _load_episode(root: Path, entry: dict, dims: tuple[int, int], views: tuple[int, int] | None) -> DemoEpisode:
     file = root / entry["file"]
     if not file.is_file():
         raise FileNotFoundError(f"missing {entry['file']}")
+    keys = ("observations", "actions", "rewards", "successes") + (("images",) if views else ())
     with np.load(file) as data:
-        arrays = {key: data[key] for key in ("observations", "actions", "rewards", "successes")}
+        arrays = {key: data[key] for key in keys}
     length = entry["length"]
     expected = {
         "observations": (length + 1, dims[0]),
@@ -242,6 +270,8 @@ def _load_episode(root: Path, entry: dict, dims: tuple[int, int]) -> DemoEpisode
         "rewards": (length,),
         "successes": (length,),
     }
+    if views:
+        expected["images"] = (length + 1, views[0], 3, views[1], views[1])
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             raise ValueError(
@@ -256,6 +286,7 @@ def _load_episode(root: Path, entry: dict, dims: tuple[int, int]) -> DemoEpisode
         successes=arrays["successes"].astype(bool),
         success=bool(entry["success"]),
         seed=int(entry["seed"]),
+        images=arrays["images"].astype(np.uint8) if views else None,
     )
 
 
@@ -264,13 +295,16 @@ def demos_to_chunks(
     tasks: Sequence[str],
     horizon: int,
     only_successful: bool = True,
+    state_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    images: bool = False,
 ) -> dict[str, torch.Tensor]:
     """The SFT dataset: one sample per time step t of every (successful) episode.
 
     Returns N samples:
-        obs      {"state": float32 [N, S] observations[t],
+        obs      {"state": float32 [N, S] observations[t] (through `state_fn`, e.g. the
+                  proprioceptive part, if given),
                   "task": int64 [N] index of the episode's task in `tasks`,
-                  and each camera key every episode has: uint8 [N, H, W, 3]}
+                  "image": uint8 [N, V, 3, H, W] images[t], with `images`}
         actions  float32 [N, H, A]  actions[t : t+H], past the episode's end repeating its
                                     last action
         mask     bool    [N, H]     False on those repeated (padded) positions
@@ -278,29 +312,33 @@ def demos_to_chunks(
     if horizon < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     task_index = {task: i for i, task in enumerate(tasks)}
-    states, task_ids, chunks, masks = [], [], [], []
-    episodes = [e for e in episodes if e.success or not only_successful]
-    cameras = set.intersection(*(set(e.images) for e in episodes)) if episodes else set()
-    frames = {key: [] for key in sorted(cameras)}
+    states, task_ids, chunks, masks, views = [], [], [], [], []
     for episode in episodes:
+        if only_successful and not episode.success:
+            continue
         if episode.task not in task_index:
             raise ValueError(f"demonstration task {episode.task!r} is not in tasks {list(tasks)}")
+        if images and episode.images is None:
+            raise ValueError(f"a {episode.task} demonstration has no camera images: generate demonstrations with "
+                             "--env.cameras set (into a new --demos.path)")
         length = len(episode.actions)
         # steps[t, h] = t + h: the action index each chunk position would take.
         steps = np.arange(length)[:, None] + np.arange(horizon)[None, :]
-        states.append(episode.observations[:length])
+        states.append(episode.observations[:length] if state_fn is None else state_fn(episode.observations[:length]))
+        if images:
+            views.append(episode.images[:length])
         task_ids.append(np.full(length, task_index[episode.task], dtype=np.int64))
         chunks.append(episode.actions[np.minimum(steps, length - 1)])
         masks.append(steps < length)
-        for key in frames:
-            frames[key].append(episode.images[key][:length])
     if not states:
         kind = "successful " if only_successful else ""
         raise ValueError(f"no {kind}demonstrations to build chunks from")
+    obs = {"state": torch.from_numpy(np.concatenate(states).astype(np.float32)),
+           "task": torch.from_numpy(np.concatenate(task_ids))}
+    if images:
+        obs["image"] = torch.from_numpy(np.concatenate(views))
     return {
-        "obs": {"state": torch.from_numpy(np.concatenate(states).astype(np.float32)),
-                "task": torch.from_numpy(np.concatenate(task_ids)),
-                **{key: torch.from_numpy(np.concatenate(v)) for key, v in frames.items()}},
+        "obs": obs,
         "actions": torch.from_numpy(np.concatenate(chunks).astype(np.float32)),
         "mask": torch.from_numpy(np.concatenate(masks)),
     }

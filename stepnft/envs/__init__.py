@@ -33,9 +33,9 @@ SIMULATORS: dict[str, SimulatorInfo] = {
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
 
 
-def get_simulator(name: str, options: dict | None = None):
-    """The :class:`~stepnft.envs.base.Simulator` registered as ``name``, built with ``options``
-    (``env.options``). A simulator whose optional extra is missing is a ValueError saying so."""
+def get_simulator(name: str):
+    """The :class:`~stepnft.envs.base.Simulator` registered as ``name``; one whose optional
+    extra is not installed is a ValueError saying so."""
     if name not in SIMULATORS:
         raise ValueError(f"unknown simulator {name!r}; choose one of: {', '.join(SIMULATORS)}")
     module, cls = SIMULATORS[name].target.split(":")
@@ -43,15 +43,31 @@ def get_simulator(name: str, options: dict | None = None):
         module = importlib.import_module(module)
     except ImportError as err:  # an optional extra (e.g. stepnft[libero]) that is not installed
         raise ValueError(str(err)) from err
-    try:
-        return getattr(module, cls)(**(options or {}))
-    except TypeError as err:  # an option the simulator does not have
-        raise ValueError(f"env.options for {name}: {err}") from err
+    return getattr(module, cls)()
 
 
-def make_vec_env(env_cfg, n_exec: int, seed: int):
+def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None):
     """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
-    ``n_exec`` actions; sub-env streams seeded from ``seed``."""
-    return get_simulator(env_cfg.name, env_cfg.options).make_vec_env(
+    ``n_exec`` actions; sub-env streams seeded from ``seed``. ``perturbations``
+    (:class:`~stepnft.envs.perturbations.Perturbations`) replaces the config's training
+    randomisation (``env.randomize``), e.g. with a suite's held-out perturbations."""
+    return get_simulator(env_cfg.name).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
-        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers)
+        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers,
+        **env_options(env_cfg, perturbations))
+
+
+def env_options(env_cfg, perturbations=None) -> dict:
+    """The chunk-env options an ``EnvConfig`` sets beyond the defaults: ``cameras`` and
+    ``image_size``, ``state_obs``, ``perturbations`` (default: its ``randomize`` list, training ranges)."""
+    from stepnft.envs.perturbations import Perturbations
+
+    perturbations = Perturbations(tuple(env_cfg.randomize)) if perturbations is None else perturbations
+    options: dict = {}
+    if env_cfg.cameras:
+        options |= {"cameras": list(env_cfg.cameras), "image_size": env_cfg.image_size}
+    if env_cfg.state_obs != "full":
+        options["state_obs"] = env_cfg.state_obs
+    if perturbations:
+        options["perturbations"] = perturbations
+    return options

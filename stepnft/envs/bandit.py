@@ -106,9 +106,9 @@ class Bandit(Simulator):
         return "put every action of the chunk on the target"
 
     def make_env(self, task, n_exec=HORIZON, max_episode_steps=HORIZON, terminate_on_success=True, seed=0,
-                 render_size=None):
-        if render_size is not None:
-            raise ValueError("the bandit has nothing to render")
+                 render_size=None, **options):
+        if render_size is not None or options:
+            raise ValueError("the bandit has nothing to render and no cameras, state options or perturbations")
         return BanditChunkEnv(n_exec=n_exec, max_episode_steps=max_episode_steps, seed=seed)
 
     def expert(self, task: str, seed: int) -> Expert:

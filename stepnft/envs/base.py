@@ -7,7 +7,9 @@ episodes through a ``ChunkVecEnv``, demonstrations come from ``Simulator.expert`
 ``Simulator.make_env(render_size=...)``.
 
 Chunk env contract (one task):
-    observation: dict with ``state`` float32 [S] (and, for camera policies, images)
+    observation: dict with ``state`` float32 [S]; with cameras ``image`` uint8 [V, 3, H, W];
+        with semantic perturbations ``instruction`` int64 (index into the task's
+        ``Simulator.instruction_variants``)
     action: float32 [n_exec, A] in [-1, 1], run row by row
     step -> obs, summed reward, terminated, truncated, info with
         ``success`` (bool, success at any step of this episode so far),
@@ -22,6 +24,7 @@ Chunk env contract (one task):
 
 from __future__ import annotations
 
+import multiprocessing
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -31,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from stepnft.envs.perturbations import Perturbations
 from stepnft.envs.sharded import ShardedVectorEnv
 
 
@@ -58,11 +62,6 @@ class Simulator(ABC):
     control_hz: ClassVar[float]
     """Env steps per simulated second (the frame rate of videos)."""
 
-    def __init__(self, **options: int):
-        """``options``: the simulator's own settings (``env.options``); none unless it declares some."""
-        if options:
-            raise ValueError(f"{self.label} takes no env.options, got: {', '.join(options)}")
-
     @abstractmethod
     def task_names(self) -> list[str]:
         """Every task this simulator offers."""
@@ -73,21 +72,39 @@ class Simulator(ABC):
 
     @abstractmethod
     def make_env(self, task: str, n_exec: int = 1, max_episode_steps: int = 200, terminate_on_success: bool = True,
-                 seed: int = 0, render_size: tuple[int, int] | None = None) -> gym.Env:
+                 seed: int = 0, render_size: tuple[int, int] | None = None, **options: Any) -> gym.Env:
         """One chunk env (see the module doc); ``render_size=(h, w)`` enables ``render()``:
-        upright uint8 frames ``[h, w, 3]``."""
+        upright uint8 frames ``[h, w, 3]``. ``options`` (``stepnft.envs.env_options``):
+        ``cameras``, ``image_size``, ``state_obs``, ``perturbations``, for simulators that have them."""
 
     @abstractmethod
     def expert(self, task: str, seed: int) -> Expert:
         """A scripted demonstrator for ``task`` (its own randomness seeded by ``seed``)."""
 
+    def state_dim_for(self, state_obs: str = "full") -> int:
+        """Size of the state observation ``state_obs`` (``full``: every simulator's state)."""
+        if state_obs != "full":
+            raise ValueError(f"{self.label} offers only state_obs 'full', got {state_obs!r}")
+        return self.state_dim
+
+    def policy_state(self, states: np.ndarray, state_obs: str = "full") -> np.ndarray:
+        """What a ``state_obs`` policy sees of full states ``[..., S]`` (demonstrations store full states)."""
+        return states[..., : self.state_dim_for(state_obs)]
+
+    def instruction_variants(self, task: str, perturbations: Perturbations | None = None) -> list[str]:
+        """The instructions the ``instruction`` observation indexes under ``perturbations``
+        (the canonical one first)."""
+        if perturbations is not None and perturbations.semantic:
+            raise ValueError(f"{self.label} has no instruction paraphrases: semantic perturbations need MetaWorld")
+        return [self.instruction(task)]
+
     def has_dataset(self, path) -> bool:
         """Whether ``path`` holds demonstrations in one of this simulator's own published formats."""
         return False
 
-    def load_dataset(self, path, images: bool = False) -> list:
+    def load_dataset(self, path, cameras: Sequence[str] = (), image_size: int = 64) -> list:
         """The demonstrations at ``path`` (see :meth:`has_dataset`) as a list of
-        :class:`stepnft.data.demos.DemoEpisode`; ``images`` also loads their camera frames."""
+        :class:`stepnft.data.demos.DemoEpisode`; with ``cameras``, their views at ``image_size``."""
         raise ValueError(f"{self.label} reads no demonstration format of its own: give a stepnft demos folder")
 
     def validate_tasks(self, tasks: str | Sequence[str]) -> list[str]:
@@ -105,9 +122,10 @@ class Simulator(ABC):
 
     def make_vec_env(self, tasks: str | Sequence[str], envs_per_task: int = 1, n_exec: int = 4,
                      max_episode_steps: int = 200, terminate_on_success: bool = True, seed: int = 0,
-                     num_workers: int = 0) -> "ChunkVecEnv":
+                     num_workers: int = 0, **options: Any) -> "ChunkVecEnv":
         """``len(tasks) * envs_per_task`` chunk envs; sub-env ``i`` runs ``tasks[i // envs_per_task]``.
-        ``num_workers`` 0 steps them in this process, >= 1 in that many worker processes."""
+        ``num_workers`` 0 steps them in this process, >= 1 in that many worker processes (which
+        then also render in parallel). ``options`` go to every :meth:`make_env`."""
         tasks = self.validate_tasks(tasks)
         if len(set(tasks)) != len(tasks):
             raise ValueError(f"each task may appear once, got {', '.join(tasks)}")
@@ -117,22 +135,35 @@ class Simulator(ABC):
         # Distinct, well-mixed sub-env seeds, so runs with nearby `seed`s share no streams.
         env_seeds = np.random.SeedSequence(seed).generate_state(len(task_ids))
         env_fns = [partial(self.make_env, tasks[k], n_exec=n_exec, max_episode_steps=max_episode_steps,
-                           terminate_on_success=terminate_on_success, seed=int(s)) for k, s in zip(task_ids, env_seeds)]
-        layout = dict(tasks=tasks, instructions=[self.instruction(t) for t in tasks], task_ids=task_ids)
+                           terminate_on_success=terminate_on_success, seed=int(s), **options)
+                   for k, s in zip(task_ids, env_seeds)]
+        variants = [self.instruction_variants(t, options.get("perturbations")) for t in tasks]
+        layout = dict(tasks=tasks, instructions=[v[0] for v in variants], instruction_variants=variants,
+                      task_ids=task_ids)
         if num_workers > 0:
-            return ShardedChunkVecEnv(env_fns, num_workers=num_workers, **layout)
+            context = None
+            if options.get("cameras"):
+                # A forked child inherits this process's GL driver state and hangs creating its
+                # own context once this process has rendered (a video, a test): start the
+                # workers from a clean server process that has imported the simulator.
+                context = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+                multiprocessing.set_forkserver_preload([type(self).__module__])
+            return ShardedChunkVecEnv(env_fns, num_workers=num_workers, context=context, **layout)
         return ChunkVecEnv(env_fns, **layout)
 
 
 class _TaskLayout:
     """The multi-task layout every chunk vector env shares; sets ``tasks``, ``instructions``
-    (per task), ``task_ids`` [N] and ``task_names`` [N], then builds the gymnasium class it is
-    mixed into with autoreset disabled (the collector resets whole waves itself)."""
+    (per task), ``instruction_variants`` (per task, what the ``instruction`` observation indexes;
+    bind a policy's processor to these), ``task_ids`` [N] and ``task_names`` [N], then builds the
+    gymnasium class it is mixed into with autoreset disabled (the collector resets whole waves
+    itself)."""
 
     def __init__(self, env_fns: list[Callable[[], gym.Env]], *, tasks: list[str], instructions: list[str],
-                 task_ids: np.ndarray, **vector_kwargs: Any):
+                 task_ids: np.ndarray, instruction_variants: list[list[str]] | None = None, **vector_kwargs: Any):
         self.tasks = list(tasks)
         self.instructions = list(instructions)
+        self.instruction_variants = instruction_variants or [[i] for i in self.instructions]
         self.task_ids = np.asarray(task_ids, dtype=np.int64)
         self.task_names = [self.tasks[i] for i in self.task_ids]
         super().__init__(env_fns, **vector_kwargs)
@@ -181,5 +212,5 @@ class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
     """:class:`ChunkVecEnv` with the sub-envs dealt out to ``num_workers`` worker processes
     (MuJoCo is CPU-bound: one worker per core). Same layout, info keys and results."""
 
-    def __init__(self, env_fns, num_workers: int = 2, **layout):
-        super().__init__(env_fns, num_workers=num_workers, **layout)
+    def __init__(self, env_fns, num_workers: int = 2, context: str | None = None, **layout):
+        super().__init__(env_fns, num_workers=num_workers, context=context, **layout)

@@ -9,13 +9,18 @@ is embedded once; the table is cached in memory and, when ``cache_dir`` is given
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from stepnft.runs import write_atomic
+
 DEFAULT_ENCODER = "default"
+_LOADED: dict[str, object] = {}
+"""Frozen encoders loaded in this process, by path."""
 
 
 def resolve_encoder_path(name: str) -> str:
@@ -42,14 +47,15 @@ class LanguageEncoder:
             from sentence_transformers import SentenceTransformer
 
             path = resolve_encoder_path(self.name)
-            try:
-                self._model = SentenceTransformer(path, device="cpu")
-            except Exception as err:  # noqa: BLE001 - many loader errors; one clear message
-                raise ValueError(
-                    f"cannot load language encoder {self.name!r} offline ({type(err).__name__}); "
-                    "give a local sentence-transformers folder or 'default'"
-                ) from err
-            self._model.eval()
+            if path not in _LOADED:  # once per process: suites and evaluations rebind often
+                try:
+                    _LOADED[path] = SentenceTransformer(path, device="cpu").eval()
+                except Exception as err:  # noqa: BLE001 - many loader errors; one clear message
+                    raise ValueError(
+                        f"cannot load language encoder {self.name!r} offline ({type(err).__name__}); "
+                        "give a local sentence-transformers folder or 'default'"
+                    ) from err
+            self._model = _LOADED[path]
         return self._model
 
     @property
@@ -70,8 +76,11 @@ class LanguageEncoder:
         for text in list(missing):
             path = self._disk_key(text)
             if path is not None and path.is_file():
-                self._cache[text] = torch.load(path, weights_only=True)
-                missing.remove(text)
+                try:
+                    self._cache[text] = torch.load(path, weights_only=True)
+                    missing.remove(text)
+                except Exception:  # noqa: BLE001 - a damaged cache entry is recomputed
+                    path.unlink(missing_ok=True)
         if missing:
             with torch.no_grad():
                 out = self._load().encode(missing, convert_to_tensor=True, show_progress_bar=False)
@@ -80,5 +89,7 @@ class LanguageEncoder:
                 path = self._disk_key(text)
                 if path is not None:
                     path.parent.mkdir(parents=True, exist_ok=True)
-                    torch.save(self._cache[text], path)
+                    buffer = io.BytesIO()
+                    torch.save(self._cache[text], buffer)
+                    write_atomic(path, buffer.getvalue())
         return torch.stack([self._cache[t] for t in texts])

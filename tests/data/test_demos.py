@@ -196,3 +196,29 @@ def test_load_demos_explains_missing_or_corrupt_folders(tmp_path, reach_demos):
         (corrupt / entry["file"]).write_bytes(whole[: len(whole) // 2])
     with pytest.raises(ValueError, match="corrupt demonstrations"):
         load_demos(corrupt)
+
+
+def test_demos_with_cameras_store_images_and_give_image_chunks(tmp_path, reach_demos):
+    from stepnft.envs.base import RenderingError
+
+    try:
+        path = generate_demos("reach-v3", episodes=1, out_dir=tmp_path / "cam", progress=False, cameras=["corner"],
+                              image_size=16)
+    except RenderingError as err:
+        pytest.skip(f"no offscreen rendering here (EGL): {err}")
+    manifest = json.loads((path / "manifest.json").read_text())
+    assert manifest["version"] == 1 and manifest["generator"]["cameras"] == ["corner"]
+    assert manifest["generator"]["image_size"] == 16
+    (episode,) = load_demos(path)
+    length = len(episode.actions)
+    assert episode.images.shape == (length + 1, 1, 3, 16, 16) and episode.images.dtype == np.uint8
+    assert episode.observations.shape == (length + 1, 39)  # the full state, whatever the policy sees
+    # The same initial state and actions as a demonstration recorded without cameras.
+    (plain, _) = load_demos(reach_demos)
+    np.testing.assert_array_equal(episode.observations, plain.observations)
+    data = demos_to_chunks([episode], ["reach-v3"], horizon=4, state_fn=lambda s: s[..., :4], images=True)
+    assert data["obs"]["state"].shape == (length, 4) and data["obs"]["image"].shape == (length, 1, 3, 16, 16)
+    np.testing.assert_array_equal(data["obs"]["image"][3].numpy(), episode.images[3])
+    with pytest.raises(ValueError, match="no camera images: generate demonstrations with --env.cameras"):
+        demos_to_chunks([plain], ["reach-v3"], horizon=4, images=True)
+    assert load_demos(reach_demos)[0].images is None  # files without images load as before

@@ -23,21 +23,22 @@ BENCHMARK_SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10
 
 @pytest.fixture(scope="module")
 def sim():
-    return get_simulator("libero", {"image_size": 32})
+    return get_simulator("libero")
 
 
 @pytest.fixture(scope="module")
 def env(sim):
-    env = sim.make_env(SOUP, n_exec=4, max_episode_steps=280, seed=0)
+    env = sim.make_env(SOUP, n_exec=4, max_episode_steps=280, seed=0, cameras=["agentview"], image_size=32)
     yield env
     env.close()
 
 
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
-    """One scripted demonstration of SOUP from initial state 0, as a LIBERO HDF5 file."""
+    """One scripted demonstration of SOUP from initial state 0, as a LIBERO HDF5 file with
+    16 px agentview frames."""
     out = tmp_path_factory.mktemp("libero_demos")
-    record_demos(SOUP, 1, out, max_attempts=1, image_size=0)
+    record_demos(SOUP, 1, out, max_attempts=1, cameras=("agentview",), image_size=16)
     return out
 
 
@@ -64,23 +65,26 @@ def test_demos_command_explains_there_are_no_experts(tmp_path, capsys):
     assert "no scripted experts" in capsys.readouterr().err
 
 
-def test_options_are_checked():
-    with pytest.raises(ValueError, match="image_size"):
-        get_simulator("libero", {"image_size": -1})
-    with pytest.raises(ValueError, match="env.options"):
-        get_simulator("libero", {"colour": 1})
+def test_options_are_checked(sim):
+    with pytest.raises(ValueError, match="unknown LIBERO camera 'corner'"):
+        sim.make_env(SOUP, cameras=["corner"])
+    with pytest.raises(ValueError, match="no perturbation"):
+        sim.make_env(SOUP, perturbations=["table_color"])
+    with pytest.raises(ValueError, match="state_obs"):
+        sim.state_dim_for("objects")
+    assert sim.state_dim_for("proprio") == sim.state_dim_for("full") == 8
 
 
 def test_reset_is_a_function_of_the_seed(sim, env):
     first, _ = env.reset(seed=3)
-    assert first["state"].shape == (8,) and first["image"].shape == (32, 32, 3) and first["image"].dtype == np.uint8
+    assert first["state"].shape == (8,) and first["image"].shape == (1, 3, 32, 32) and first["image"].dtype == np.uint8
     rng = np.random.default_rng(0)
     for chunk in rng.uniform(-1, 1, (5, 4, 7)):
         env.step(chunk.astype(np.float32))
     again, _ = env.reset(seed=3)
     wrapped, _ = env.reset(seed=53)  # 50 initial states: seed -> state seed % 50
     other, _ = env.reset(seed=4)
-    fresh = sim.make_env(SOUP, n_exec=4, seed=12345)
+    fresh = sim.make_env(SOUP, n_exec=4, seed=12345, cameras=["agentview"], image_size=32)
     try:
         in_fresh, _ = fresh.reset(seed=3)
     finally:
@@ -119,8 +123,9 @@ def test_a_replayed_demonstration_reaches_success_from_the_task_predicate(env, d
     (file,) = demo_dir.rglob("*.hdf5")
     with h5py.File(file) as f:
         states = f["data/demo_0/states"][()]
-    (demo,) = load_demos(demo_dir, get_simulator("libero"))
+    (demo,) = load_demos(demo_dir, get_simulator("libero"), cameras=["agentview"], image_size=16)
     assert demo.task == SOUP and demo.success and len(demo.actions) == len(states)
+    assert demo.images.shape == (len(states) + 1, 1, 3, 16, 16)
     actions = demo.actions
     pad = -len(actions) % 4
     chunks = np.concatenate([actions, np.repeat(actions[-1:], pad, 0)]).reshape(-1, 4, 7)
@@ -152,7 +157,7 @@ def test_worker_processes_step_like_one_process():
 
     results = []
     for workers in (0, 1):
-        cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, num_workers=workers, options={"image_size": 0})
+        cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, num_workers=workers)
         venv = make_vec_env(cfg, n_exec=4, seed=0)
         try:
             obs, _ = venv.reset(seed=[7])
@@ -175,7 +180,7 @@ def test_the_collector_records_camera_observations():
     from stepnft.rollout.collector import Collector
 
     cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, max_episode_steps=8,
-                    options={"image_size": 16, "wrist_camera": 1, "settle_steps": 0})
+                    cameras=["agentview", "robot0_eye_in_hand"], image_size=16)
     collector = Collector(make_vec_env(cfg, n_exec=4, seed=0), seed=0)
     try:
         torch.manual_seed(0)
@@ -184,9 +189,8 @@ def test_the_collector_records_camera_observations():
     finally:
         collector.close()
     assert batch.env_steps == 8 and batch.num_calls == 2
-    for key in ("image", "wrist_image"):
-        assert batch.obs[key].shape == (2, 16, 16, 3) and batch.obs[key].dtype == torch.uint8
-    assert not torch.equal(batch.obs["image"], batch.obs["wrist_image"])
+    assert batch.obs["image"].shape == (2, 2, 3, 16, 16) and batch.obs["image"].dtype == torch.uint8
+    assert not torch.equal(batch.obs["image"][:, 0], batch.obs["image"][:, 1])  # scene and wrist differ
 
 
 def test_hdf5_loader_reads_libero_layout(tmp_path):
@@ -214,18 +218,21 @@ def test_hdf5_loader_reads_libero_layout(tmp_path):
             obs.create_dataset("joint_states", data=np.zeros((5, 7)))
             obs.create_dataset("agentview_rgb", data=frames[k])
             obs.create_dataset("eye_in_hand_rgb", data=frames[1 - k])
-    demos = load_dataset(tmp_path, images=True)
+    demos = load_dataset(tmp_path, ["agentview", "robot0_eye_in_hand"], image_size=6)
     assert [d.actions[0, 0] for d in demos] == [0, 1]  # demo_0 first
     first = demos[0]
     assert first.task == SOUP and first.instruction == LIBERO().instruction(SOUP) and first.success
     assert first.observations.shape == (6, 8) and first.actions.shape == (5, 7)
     np.testing.assert_array_equal(first.observations[0], [1, 1, 1, 2, 2, 2, 3, 3])
     np.testing.assert_array_equal(first.successes, [0, 0, 0, 0, 1])
-    np.testing.assert_array_equal(first.images["image"][:5], frames[0][:, ::-1, ::-1])  # upright, as the env
-    np.testing.assert_array_equal(first.images["wrist_image"][:5], frames[1][:, ::-1, ::-1])
-    chunks = demos_to_chunks(demos, [SOUP], horizon=3)
-    assert chunks["obs"]["image"].shape == (10, 6, 6, 3) and chunks["actions"].shape == (10, 3, 7)
-    assert load_dataset(tmp_path)[0].images == {}  # frames only when asked for
+    # The env's layout [T+1, V, 3, H, W], upright (the files hold robosuite's rotated frames).
+    assert first.images.shape == (6, 2, 3, 6, 6)
+    np.testing.assert_array_equal(first.images[:5, 0], frames[0][:, ::-1, ::-1].transpose(0, 3, 1, 2))
+    np.testing.assert_array_equal(first.images[:5, 1], frames[1][:, ::-1, ::-1].transpose(0, 3, 1, 2))
+    chunks = demos_to_chunks(demos, [SOUP], horizon=3, images=True)
+    assert chunks["obs"]["image"].shape == (10, 2, 3, 6, 6) and chunks["actions"].shape == (10, 3, 7)
+    assert load_dataset(tmp_path)[0].images is None  # frames only for the cameras asked for
+    assert load_dataset(tmp_path, ["agentview"], image_size=3)[0].images.shape == (6, 1, 3, 3, 3)  # resized
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -271,36 +278,38 @@ def test_lerobot_loader(tmp_path, version):
         pq.write_table(pa.table({"task_index": [0, 1], "__index_level_0__": instructions}),
                        tmp_path / "meta" / "tasks.parquet")
         pq.write_table(pa.Table.from_pylist(shuffled), tmp_path / "data" / "chunk-000" / "file-000.parquet")
-    demos = load_demos(tmp_path, get_simulator("libero"), images=True)
+    demos = load_demos(tmp_path, get_simulator("libero"), cameras=["agentview"], image_size=4)
     assert [d.task for d in demos] == [SOUP, goal.name]
     assert demos[1].instruction == goal.instruction  # the benchmark's wording, whatever the dataset's
     np.testing.assert_array_equal(demos[0].actions[:, 0], [0, 1, 2, 3])
     np.testing.assert_array_equal(demos[1].observations[:, 0], [1, 1, 1, 1])
-    assert demos[0].images["image"].shape == (5, 4, 4, 3)
+    assert demos[0].images.shape == (5, 1, 3, 4, 4)
     first = next(r for r in rows if r["episode_index"] == 0 and r["frame_index"] == 0)
     from PIL import Image
     import io
 
-    np.testing.assert_array_equal(demos[0].images["image"][0],
+    np.testing.assert_array_equal(demos[0].images[0, 0].transpose(1, 2, 0),
                                   np.asarray(Image.open(io.BytesIO(first["observation.images.image"]["bytes"]))))
+    with pytest.raises(ValueError, match="no robot0_eye_in_hand images"):
+        load_demos(tmp_path, get_simulator("libero"), cameras=["robot0_eye_in_hand"])
 
 
 @pytest.mark.slow
 def test_tiny_sft_and_stepnft_run_and_eval_from_the_cli(tmp_path, demo_dir, capsys):
+    """The camera policy of configs/libero.yaml, shrunk: SFT from a LIBERO HDF5 file, one
+    π-StepNFT iteration, evaluation, then `stepnft eval` with a video."""
     run = tmp_path / "run"
-    common = ["--env.name", "libero", "--env.tasks", SOUP, "--env.envs-per-task", "1", "--env.max-episode-steps", "24"]
-    # The config sets env.options, so its keys become flags of their own (tyro); without one,
-    # options are name value pairs (the eval below).
-    assert main(["train", "--config", "configs/libero.yaml", "--run-dir", str(run), *common, "--env.options.image-size", "0",
-                 "--demos.path", str(demo_dir), "--demos.episodes", "1", "--sft.steps", "5", "--iterations", "1",
-                 "--episodes-per-iteration", "2", "--eval.episodes", "1", "--eval.every", "0",
-                 "--algo.minibatch-size", "16"]) == 0
+    common = ["--env.tasks", SOUP, "--env.envs-per-task", "1", "--env.max-episode-steps", "24"]
+    assert main(["train", "--config", "configs/libero.yaml", "--run-dir", str(run), *common, "--env.num-workers", "0",
+                 "--env.image-size", "16", "--policy.image-size", "16", "--demos.path", str(demo_dir),
+                 "--demos.episodes", "1", "--sft.steps", "3", "--sft.batch-size", "8", "--iterations", "1",
+                 "--episodes-per-iteration", "1", "--eval.episodes", "1", "--eval.every", "0",
+                 "--algo.minibatch-size", "8"]) == 0
     summary = json.loads((run / "summary.json").read_text())
     assert summary["env_steps"] > 0 and SOUP in summary["tasks"] and (run / "policy" / "model.safetensors").is_file()
     videos = tmp_path / "videos"
-    assert main(["eval", "--policy", str(run / "policy"), *common, "--env.options", "image_size", "0", "settle_steps", "5",
-                 "--eval.episodes", "2", "--video-dir", str(videos),
-                 "--out", str(tmp_path / "eval.json")]) == 0
+    assert main(["eval", "--policy", str(run / "policy"), "--env.name", "libero", *common, "--env.image-size", "16",
+                 "--eval.episodes", "2", "--video-dir", str(videos), "--out", str(tmp_path / "eval.json")]) == 0
     result = json.loads((tmp_path / "eval.json").read_text())
     assert result["tasks"][SOUP]["episodes"] == 2 and len(result["tasks"][SOUP]["ci95"]) == 2
     assert len(list(videos.glob(f"{SOUP}_ep0_*.mp4"))) == 1

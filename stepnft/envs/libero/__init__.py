@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; robosuite reads it when imported
+os.environ.setdefault("LP_NUM_THREADS", "1")  # one llvmpipe thread per process: workers render side by side
 logging.disable(logging.WARNING)  # robosuite warns at import that it has no private macro file
 try:
     import libero.libero  # noqa: F401
@@ -33,13 +34,8 @@ __all__ = ["LIBERO", "SUITES", "SUITE_MAX_STEPS", "suite_tasks"]
 
 
 class LIBERO(Simulator):
-    """LIBERO's tasks; a suite name stands for all of its tasks.
-
-    ``env.options``: ``image_size`` (camera images of this side in pixels; 0: no images, state
-    only), ``wrist_camera`` (1: also the eye-in-hand camera), ``shadows`` (0: render without
-    shadows and reflections, faster but unlike the published datasets), ``settle_steps``
-    (no-op steps after each reset, 10 as in the reference evaluation).
-    """
+    """LIBERO's tasks; a suite name stands for all of its tasks. Cameras: ``agentview`` and
+    ``robot0_eye_in_hand`` (``--env.cameras``)."""
 
     name = "libero"
     label = "LIBERO"
@@ -47,12 +43,10 @@ class LIBERO(Simulator):
     action_dim = 7
     control_hz = 20.0
 
-    def __init__(self, image_size: int = 128, wrist_camera: int = 0, shadows: int = 1, settle_steps: int = 10):
-        if image_size < 0 or settle_steps < 0 or wrist_camera not in (0, 1) or shadows not in (0, 1):
-            raise ValueError(f"LIBERO env.options need image_size >= 0, settle_steps >= 0, wrist_camera and shadows "
-                             f"0 or 1, got {image_size}, {settle_steps}, {wrist_camera}, {shadows}")
-        self.image_size, self.wrist_camera = image_size, bool(wrist_camera)
-        self.shadows, self.settle_steps = bool(shadows), settle_steps
+    def state_dim_for(self, state_obs: str = "full") -> int:
+        if state_obs not in ("full", "proprio"):
+            raise ValueError(f"LIBERO's state_obs is full or proprio (the same 8 values), got {state_obs!r}")
+        return self.state_dim
 
     def task_names(self) -> list[str]:
         return list(all_tasks())
@@ -78,13 +72,12 @@ class LIBERO(Simulator):
                                  "(`python -m stepnft.envs.libero` lists them)")
         return expanded
 
-    def make_env(self, task, n_exec=1, max_episode_steps=520, terminate_on_success=True, seed=0, render_size=None):
+    def make_env(self, task, n_exec=1, max_episode_steps=520, terminate_on_success=True, seed=0, render_size=None,
+                 **options):
         from stepnft.envs.libero.env import LiberoChunkEnv
 
         return LiberoChunkEnv(task, n_exec=n_exec, max_episode_steps=max_episode_steps,
-                              terminate_on_success=terminate_on_success, seed=seed, render_size=render_size,
-                              image_size=self.image_size, wrist_camera=self.wrist_camera, shadows=self.shadows,
-                              settle_steps=self.settle_steps)
+                              terminate_on_success=terminate_on_success, seed=seed, render_size=render_size, **options)
 
     def expert(self, task: str, seed: int) -> Expert:
         raise ValueError("LIBERO has no scripted experts: point --demos.path at LIBERO's HDF5 demonstration files or a "
@@ -95,7 +88,7 @@ class LIBERO(Simulator):
 
         return dataset_format(Path(path)) is not None
 
-    def load_dataset(self, path, images: bool = False) -> list:
+    def load_dataset(self, path, cameras=(), image_size=64) -> list:
         from stepnft.envs.libero.datasets import load_dataset
 
-        return load_dataset(Path(path), images=images)
+        return load_dataset(Path(path), cameras, image_size)

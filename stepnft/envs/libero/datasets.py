@@ -3,9 +3,10 @@
 Both become :class:`stepnft.data.demos.DemoEpisode` objects for the SFT path (``demos_to_chunks``)
 with the env's ``state`` (8-d: end-effector position, axis-angle orientation, gripper finger
 positions), 7-d actions and the task's instruction as the simulator defines it; with
-``images=True`` also ``image`` (agentview) and ``wrist_image`` frames, upright as the env gives
-them. A demonstration of T actions gets T + 1 observations: the last one repeated (the files
-hold one observation per action).
+``cameras`` (``agentview``, ``robot0_eye_in_hand``) also their frames as the env's ``image``,
+uint8 [T+1, V, 3, S, S], upright and resized to ``image_size`` S if stored at another size. A
+demonstration of T actions gets T + 1 observations: the last one repeated (the files hold one
+observation per action).
 
 **LIBERO HDF5** (robomimic-style, one file per task, ``<suite>/<task>_demo.hdf5``)::
 
@@ -25,10 +26,11 @@ without ``_demo.hdf5``). ``path`` is one file or a folder searched recursively (
 **LeRobot** (a dataset folder: ``meta/info.json`` with ``codebase_version`` v2.x or v3.0, frames
 in ``data/**/*.parquet``, tasks in ``meta/tasks.jsonl`` (v2) or ``meta/tasks.parquet`` (v3)).
 Columns read: ``observation.state`` (or ``state``) [8], ``action`` (or ``actions``) [7],
-``episode_index``, ``frame_index``, ``task_index``; images from parquet image columns
+``episode_index``, ``frame_index``, ``task_index``; camera frames from parquet image columns
 ``observation.images.image`` / ``observation.images.wrist_image`` (or ``image`` /
-``wrist_image``), stored as encoded PNG/JPEG bytes (LeRobot's ``image`` feature type). Videos
-(the ``video`` feature type) are not decoded: load such a dataset without images. The episode's
+``wrist_image``) for agentview / robot0_eye_in_hand, stored as encoded PNG/JPEG bytes (LeRobot's
+``image`` feature type). Videos (the ``video`` feature type) are not decoded: use such a dataset
+without cameras. The episode's
 task is found by its instruction (the benchmark's or the BDDL file's wording; case and a final
 period ignored); its instruction then is the benchmark's, like every LIBERO episode here.
 """
@@ -38,6 +40,7 @@ from __future__ import annotations
 import io
 import json
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +51,9 @@ from stepnft.envs.libero.suites import all_tasks
 HDF5_SUFFIXES = (".hdf5", ".h5")
 LEROBOT_STATE_KEYS = ("observation.state", "state")
 LEROBOT_ACTION_KEYS = ("action", "actions")
-LEROBOT_IMAGE_KEYS = {"image": ("observation.images.image", "image"),
-                      "wrist_image": ("observation.images.wrist_image", "wrist_image")}
+HDF5_IMAGE_KEYS = {"agentview": "agentview_rgb", "robot0_eye_in_hand": "eye_in_hand_rgb"}
+LEROBOT_IMAGE_KEYS = {"agentview": ("observation.images.image", "image"),
+                      "robot0_eye_in_hand": ("observation.images.wrist_image", "wrist_image")}
 
 
 def dataset_format(path: Path) -> str | None:
@@ -63,21 +67,40 @@ def dataset_format(path: Path) -> str | None:
     return None
 
 
-def load_dataset(path: Path, images: bool = False) -> list[DemoEpisode]:
-    """Every demonstration at ``path`` (either format), file by file, demo by demo."""
+def load_dataset(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
+    """Every demonstration at ``path`` (either format), file by file, demo by demo; with the
+    frames of ``cameras`` at ``image_size``."""
+    unknown = [c for c in cameras if c not in HDF5_IMAGE_KEYS]
+    if unknown:
+        raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(HDF5_IMAGE_KEYS)}")
     kind = dataset_format(path)
     if kind is None:
         raise FileNotFoundError(f"no LIBERO demonstrations at {path}: expected *.hdf5 files or a LeRobot dataset "
                                 "(meta/info.json); docs/libero.md says where to get them")
     try:
-        return load_hdf5(path, images) if kind == "hdf5" else load_lerobot(path, images)
+        load = load_hdf5 if kind == "hdf5" else load_lerobot
+        return load(path, list(cameras), image_size)
     except (KeyError, TypeError, IndexError) as err:  # a file in another layout
         raise ValueError(f"{path} is not a LIBERO {kind} dataset ({type(err).__name__}: {err}); "
                          "docs/libero.md describes the layout read") from err
 
 
+def _views(frames: list[np.ndarray], size: int) -> np.ndarray | None:
+    """Per-camera frames uint8 [T, H, W, 3] -> the env's ``image`` layout [T, V, 3, size, size]."""
+    if not frames:
+        return None
+    from PIL import Image
+
+    def fit(frame: np.ndarray) -> np.ndarray:
+        if frame.shape[:2] == (size, size):
+            return frame
+        return np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR))
+
+    return np.stack([np.stack([fit(f) for f in camera]) for camera in frames], axis=1).transpose(0, 1, 4, 2, 3)
+
+
 def _episode(task: str, state: np.ndarray, actions: np.ndarray, successes: np.ndarray, seed: int,
-             images: dict[str, np.ndarray]) -> DemoEpisode:
+             images: np.ndarray | None) -> DemoEpisode:
     if len(actions) == 0 or len(state) != len(actions):
         raise ValueError(f"a demonstration of {task} has {len(actions)} actions and {len(state)} observations")
     successes = np.maximum.accumulate(np.asarray(successes, dtype=bool))
@@ -86,12 +109,12 @@ def _episode(task: str, state: np.ndarray, actions: np.ndarray, successes: np.nd
         observations=np.concatenate([state, state[-1:]]).astype(np.float32),
         actions=np.asarray(actions, dtype=np.float32), rewards=successes.astype(np.float32),
         successes=successes, success=bool(successes[-1]), seed=seed,
-        images={k: np.concatenate([v, v[-1:]]) for k, v in images.items()})
+        images=None if images is None else np.ascontiguousarray(np.concatenate([images, images[-1:]])))
 
 
 # ----------------------------------------------------------------------------- LIBERO HDF5
 
-def load_hdf5(path: Path, images: bool = False) -> list[DemoEpisode]:
+def load_hdf5(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
     """The demonstrations of one LIBERO HDF5 file, or of every such file under a folder."""
     import h5py
 
@@ -113,11 +136,10 @@ def load_hdf5(path: Path, images: bool = False) -> list[DemoEpisode]:
                 actions = demo["actions"][()]
                 # The published files hold only successful demonstrations.
                 successes = demo["dones"][()] if "dones" in demo else np.arange(len(actions)) == len(actions) - 1
-                frames = {}
-                if images:  # robosuite's raw frames are rotated by 180 degrees; the env's are upright
-                    frames = {k: obs[src][()][:, ::-1, ::-1] for k, src in
-                              (("image", "agentview_rgb"), ("wrist_image", "eye_in_hand_rgb")) if src in obs}
-                episodes.append(_episode(task, state, actions, successes, int(key.rsplit("_", 1)[-1]), frames))
+                # robosuite's raw frames are rotated by 180 degrees; the env's are upright
+                frames = [obs[HDF5_IMAGE_KEYS[c]][()][:, ::-1, ::-1] for c in cameras]
+                episodes.append(_episode(task, state, actions, successes, int(key.rsplit("_", 1)[-1]),
+                                         _views(frames, image_size)))
     return episodes
 
 
@@ -196,7 +218,7 @@ def _decode(cell) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB"))
 
 
-def load_lerobot(root: Path, images: bool = False) -> list[DemoEpisode]:
+def load_lerobot(root: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
     """The episodes of a LeRobot dataset on disk (module doc: the subset of the format read)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -211,15 +233,15 @@ def load_lerobot(root: Path, images: bool = False) -> list[DemoEpisode]:
     table = pa.concat_tables([pq.read_table(f) for f in files])
     state_key = _pick(table.column_names, LEROBOT_STATE_KEYS, "state")
     action_key = _pick(table.column_names, LEROBOT_ACTION_KEYS, "action")
-    image_keys = {}
-    if images:
-        features = info.get("features", {})
-        for key, names in LEROBOT_IMAGE_KEYS.items():
-            found = [n for n in names if n in features or n in table.column_names]
-            if found and features.get(found[0], {}).get("dtype") == "video":
-                raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: load without images")
-            if found and found[0] in table.column_names:
-                image_keys[key] = found[0]
+    image_columns = []
+    features = info.get("features", {})
+    for camera in cameras:
+        found = [n for n in LEROBOT_IMAGE_KEYS[camera] if n in features or n in table.column_names]
+        if found and features.get(found[0], {}).get("dtype") == "video":
+            raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: use it without cameras")
+        if not found or found[0] not in table.column_names:
+            raise ValueError(f"{root} has no {camera} images (tried {', '.join(LEROBOT_IMAGE_KEYS[camera])})")
+        image_columns.append(found[0])
     by_instruction = {_instruction_key(text): name for name, t in all_tasks().items()
                       for text in (t.bddl_instruction(), t.instruction)}
     instructions = _lerobot_tasks(root)
@@ -235,8 +257,8 @@ def load_lerobot(root: Path, images: bool = False) -> list[DemoEpisode]:
         task = by_instruction[_instruction_key(text)]
         state = np.asarray([columns[state_key][i] for i in rows], dtype=np.float32)
         actions = np.asarray([columns[action_key][i] for i in rows], dtype=np.float32)
-        frames = {k: np.stack([_decode(columns[col][i]) for i in rows]) for k, col in image_keys.items()}
+        frames = [np.stack([_decode(columns[col][i]) for i in rows]) for col in image_columns]
         # LeRobot's LIBERO datasets hold successful demonstrations only.
         successes = np.arange(len(rows)) == len(rows) - 1
-        episodes.append(_episode(task, state, actions, successes, int(episode), frames))
+        episodes.append(_episode(task, state, actions, successes, int(episode), _views(frames, image_size)))
     return episodes

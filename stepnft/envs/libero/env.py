@@ -5,12 +5,13 @@ OSC_POSE controller at 20 Hz) built from the task's BDDL definition; success is 
 predicate (``_check_success``), evaluated after every env step.
 
 Observations:
-    ``state``        float32 [8]: end-effector position (3), orientation as an axis-angle (3),
-                     gripper finger positions (2): the proprioception of LIBERO's datasets
-                     (``ee_pos``, ``ee_ori``, ``gripper_states``) and of LeRobot's LIBERO datasets
-    ``image``        uint8 [S, S, 3]: the ``agentview`` camera, upright (rotated 180 degrees
-                     from robosuite's raw frame, as OpenVLA and LeRobot feed it), S = ``image_size``
-    ``wrist_image``  uint8 [S, S, 3]: the eye-in-hand camera, likewise (with ``wrist_camera``)
+    ``state``  float32 [8]: end-effector position (3), orientation as an axis-angle (3), gripper
+               finger positions (2): the proprioception of LIBERO's datasets (``ee_pos``,
+               ``ee_ori``, ``gripper_states``) and of LeRobot's LIBERO datasets; LIBERO gives no
+               object positions, so ``state_obs`` full and proprio are the same
+    ``image``  uint8 [V, 3, S, S] with ``cameras`` (``agentview``, ``robot0_eye_in_hand``), S =
+               ``image_size``: upright (rotated 180 degrees from robosuite's raw frame, as OpenVLA
+               and LeRobot feed it), with shadows, as LIBERO's datasets were rendered
 Cameras are rendered once per ``step`` call (after the chunk), not after every env step.
 
 Actions: float32 [n_exec, 7] in [-1, 1]: end-effector translation (3) and rotation (3) deltas,
@@ -22,6 +23,7 @@ evaluation protocol. An unseeded reset draws the state from the env's own stream
 reset (its random object placement drawn from a generator seeded by the state index, then
 overwritten by the initial state), the state is set, and ``settle_steps`` no-op actions (gripper
 open) let objects settle, as the reference evaluation does; they do not count as episode steps.
+LIBERO has no perturbation suites (``perturbations`` are refused).
 ``reset(options={"init_state": flat_state})`` starts exactly from any flattened MuJoCo state of
 the task, without settling steps (e.g. a state of a recorded demonstration). Replaying recorded
 actions from there can drift: the gripper's command ramp is not part of MuJoCo's state.
@@ -29,6 +31,7 @@ actions from there can drift: the gripper's command ramp is not part of MuJoCo's
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -41,8 +44,9 @@ from stepnft.envs.libero.suites import all_tasks, initial_states
 STATE_DIM = 8
 ACTION_DIM = 7
 CONTROL_HZ = 20
-AGENT_CAMERA = "agentview"
-WRIST_CAMERA = "robot0_eye_in_hand"
+CAMERAS = ("agentview", "robot0_eye_in_hand")
+"""LIBERO's cameras: the scene and the wrist (its datasets' ``agentview_rgb``, ``eye_in_hand_rgb``)."""
+SETTLE_STEPS = 10
 SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
 """Hold still with the gripper open (the reference evaluation's 'dummy action')."""
 
@@ -67,14 +71,21 @@ class LiberoChunkEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
 
     def __init__(self, task: str, n_exec: int = 1, max_episode_steps: int = 520, terminate_on_success: bool = True,
-                 seed: int = 0, render_size: tuple[int, int] | None = None, image_size: int = 128,
-                 wrist_camera: bool = False, shadows: bool = True, settle_steps: int = 10):
+                 seed: int = 0, render_size: tuple[int, int] | None = None, cameras: Sequence[str] = (),
+                 image_size: int = 64, state_obs: str = "full", perturbations=None, settle_steps: int = SETTLE_STEPS):
         tasks = all_tasks()
         if task not in tasks:
             raise ValueError(f"unknown LIBERO task {task!r}: `python -m stepnft.envs.libero` lists them")
-        if n_exec < 1 or max_episode_steps < 1 or image_size < 0 or settle_steps < 0:
-            raise ValueError(f"need n_exec >= 1, max_episode_steps >= 1, image_size >= 0 and settle_steps >= 0, got "
+        if n_exec < 1 or max_episode_steps < 1 or image_size < 1 or settle_steps < 0:
+            raise ValueError(f"need n_exec >= 1, max_episode_steps >= 1, image_size >= 1 and settle_steps >= 0, got "
                              f"{n_exec}, {max_episode_steps}, {image_size}, {settle_steps}")
+        unknown = [c for c in cameras if c not in CAMERAS]
+        if unknown:
+            raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(CAMERAS)}")
+        if state_obs not in ("full", "proprio"):
+            raise ValueError(f"LIBERO's state_obs is full or proprio (the same 8 values), got {state_obs!r}")
+        if perturbations:
+            raise ValueError("LIBERO has no perturbation suites or training randomisation (docs/ood.md is MetaWorld's)")
         self.task = tasks[task]
         self.instruction = self.task.instruction
         self.n_exec = n_exec
@@ -82,17 +93,14 @@ class LiberoChunkEnv(gym.Env):
         self.terminate_on_success = terminate_on_success
         self.render_size = render_size
         self.render_mode = "rgb_array" if render_size else None
-        self.shadows, self.settle_steps = shadows, settle_steps
-        self._cameras = {}
-        if image_size:
-            self._cameras["image"] = AGENT_CAMERA
-            if wrist_camera:
-                self._cameras["wrist_image"] = WRIST_CAMERA
+        self.settle_steps = settle_steps
+        self._cameras = list(cameras)
         self._image_size = image_size
         self._init_states = initial_states(task)
 
         spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
-        spaces |= {key: gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8) for key in self._cameras}
+        if self._cameras:
+            spaces["image"] = gym.spaces.Box(0, 255, (len(self._cameras), 3, image_size, image_size), np.uint8)
         self.observation_space = gym.spaces.Dict(spaces)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n_exec, ACTION_DIM), np.float32)
 
@@ -105,10 +113,9 @@ class LiberoChunkEnv(gym.Env):
         # XML (seconds) at every reset.
         self._env = ControlEnv(bddl_file_name=self.task.bddl_file, use_camera_obs=False,
                                has_offscreen_renderer=bool(self._cameras or render_size), has_renderer=False,
-                               camera_names=[AGENT_CAMERA], camera_heights=max(image_size, 1),
-                               camera_widths=max(image_size, 1), hard_reset=False, ignore_done=True,
+                               camera_names=[CAMERAS[0]], camera_heights=image_size,
+                               camera_widths=image_size, hard_reset=False, ignore_done=True,
                                control_freq=CONTROL_HZ)
-        self._renderer_ready = False
         self.np_random, _ = seeding.np_random(seed)
         self._obs: dict[str, np.ndarray] | None = None
         self._episode_steps = 0
@@ -172,8 +179,9 @@ class LiberoChunkEnv(gym.Env):
 
     def _observe(self, raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         obs = {"state": proprio_state(raw)}
-        for key, camera in self._cameras.items():
-            obs[key] = self._render(camera, self._image_size, self._image_size)
+        if self._cameras:
+            size = self._image_size
+            obs["image"] = np.stack([self._render(camera, size, size).transpose(2, 0, 1) for camera in self._cameras])
         return obs
 
     def _copy_obs(self) -> dict[str, np.ndarray]:
@@ -183,30 +191,20 @@ class LiberoChunkEnv(gym.Env):
         return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
 
     def _render(self, camera: str, height: int, width: int) -> np.ndarray:
-        if not self._renderer_ready:
-            self._prepare_renderer(camera)
-        frame = self._env.sim.render(camera_name=camera, width=width, height=height)
-        return np.ascontiguousarray(frame[::-1, ::-1])  # robosuite's frames come out rotated by 180 degrees
-
-    def _prepare_renderer(self, camera: str) -> None:
-        import mujoco
-
+        """uint8 [height, width, 3], upright. Shadows stay on (without them a frame takes about
+        0.6x the time, but LIBERO's datasets were rendered with them)."""
         try:
-            self._env.sim.render(camera_name=camera, width=8, height=8)
+            frame = self._env.sim.render(camera_name=camera, width=width, height=height)
         except Exception as err:  # noqa: BLE001 - GL failures come as several error types
             raise RenderingError(f"offscreen rendering failed ({str(err).splitlines()[0]}): set MUJOCO_GL=egl "
                                  "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)") from err
-        if not self.shadows:  # about 1.7x faster, but the published datasets were rendered with them
-            scene = self._env.sim._render_context_offscreen.scn
-            scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-            scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        self._renderer_ready = True
+        return np.ascontiguousarray(frame[::-1, ::-1])  # robosuite's frames come out rotated by 180 degrees
 
     def render(self) -> np.ndarray | None:
         """The agentview camera at ``render_size``, uint8 [h, w, 3] upright, if built with one."""
         if self.render_size is None:
             return None
-        return self._render(AGENT_CAMERA, *self.render_size)
+        return self._render(CAMERAS[0], *self.render_size)
 
     def close(self) -> None:
         if getattr(self, "_env", None) is not None:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stepnft.envs.libero.datasets import write_hdf5
+from stepnft.envs.libero.datasets import HDF5_IMAGE_KEYS, write_hdf5
 
 GRIPPER_OPEN, GRIPPER_CLOSED = -1.0, 1.0
 POSITION_GAIN = 40.0
@@ -46,7 +46,7 @@ def record_episode(env, seed: int) -> dict | None:
     raw = robosuite_env._get_observations()
     plan = _plan(raw[f"{obj_name}_pos"].copy(), raw[f"{basket_name}_pos"].copy())
     record = {k: [] for k in ("actions", "states", "ee_pos", "ee_ori", "gripper_states", "joint_states")}
-    frames = {"agentview_rgb": [], "eye_in_hand_rgb": []}
+    frames = {HDF5_IMAGE_KEYS[camera]: [] for camera in env._cameras}
     info, terminated, truncated = {"success": False}, False, False
     for target, gripper, max_steps in plan:
         for _ in range(max_steps):
@@ -65,9 +65,9 @@ def record_episode(env, seed: int) -> dict | None:
             record["ee_ori"].append(state[3:6])
             record["gripper_states"].append(state[6:])
             record["joint_states"].append(raw["robot0_joint_pos"].astype(np.float32))
-            for key, src in (("agentview_rgb", "image"), ("eye_in_hand_rgb", "wrist_image")):
-                if src in obs:  # LIBERO's files hold robosuite's raw frames (rotated by 180 degrees)
-                    frames[key].append(obs[src][::-1, ::-1])
+            for view, key in zip(obs.get("image", ()), frames):
+                # LIBERO's files hold robosuite's raw frames: [H, W, 3], rotated by 180 degrees
+                frames[key].append(view.transpose(1, 2, 0)[::-1, ::-1])
             record["actions"].append(action)
             _, _, terminated, truncated, info = env.step(action[None])
             if terminated or truncated:
@@ -81,7 +81,7 @@ def record_episode(env, seed: int) -> dict | None:
 
 
 def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: int | None = None,
-                 image_size: int = 128) -> Path:
+                 cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand"), image_size: int = 128) -> Path:
     """Scripted demonstrations of ``task`` until ``episodes`` succeed (initial states 0, 1, ...)
     into ``out_dir/<suite>/<task>_demo.hdf5``; returns the file."""
     from stepnft.envs.libero import LIBERO
@@ -91,8 +91,8 @@ def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: in
     if info.suite != "libero_object":
         raise ValueError(f"the scripted pick-and-place handles libero_object tasks only, not {task}")
     max_attempts = 5 * episodes if max_attempts is None else max_attempts
-    sim = LIBERO(image_size=image_size, wrist_camera=int(image_size > 0))
-    env = sim.make_env(task, n_exec=1, max_episode_steps=info.max_episode_steps)
+    env = LIBERO().make_env(task, n_exec=1, max_episode_steps=info.max_episode_steps, cameras=cameras,
+                            image_size=image_size)
     demos, attempts = [], 0
     try:
         while len(demos) < episodes:
@@ -117,11 +117,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tasks", nargs="+", default=["libero_object"], help="libero_object tasks (or the suite)")
     parser.add_argument("--episodes", type=int, default=5, help="successful demonstrations per task")
     parser.add_argument("--out", required=True, help="output folder (LIBERO's datasets layout)")
-    parser.add_argument("--image-size", type=int, default=128, help="camera frames stored (0: none)")
+    parser.add_argument("--cameras", nargs="*", default=["agentview", "robot0_eye_in_hand"],
+                        help="cameras whose frames are stored (none: no frames)")
+    parser.add_argument("--image-size", type=int, default=128, help="side of the stored frames (LIBERO's: 128)")
     args = parser.parse_args(argv)
-    for task in LIBERO(image_size=0).validate_tasks(args.tasks):
+    for task in LIBERO().validate_tasks(args.tasks):
         try:
-            print(f"wrote {record_demos(task, args.episodes, args.out, image_size=args.image_size)}")
+            path = record_demos(task, args.episodes, args.out, cameras=tuple(args.cameras), image_size=args.image_size)
+            print(f"wrote {path}")
         except ValueError as err:
             print(f"skipped {task}: {err}")
     return 0

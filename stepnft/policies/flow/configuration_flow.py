@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import ClassVar
 
 
@@ -39,13 +39,34 @@ class FlowPolicyConfig:
     """Normalised state features are clamped to [-state_clip, state_clip]."""
     state_min_std: float = 0.05
     """Floor on the per-dimension state std used for normalisation (few demos give tiny spreads)."""
+    cameras: list[str] = field(default_factory=list)
+    """Camera views the policy sees, in order (empty: a state policy); must equal env.cameras.
+    A camera policy encodes each view with a small CNN (``stepnft.policies.vision``)."""
+    image_size: int = 64
+    """Side of the square images the CNN takes (the processor resizes the env's images to it)."""
+    image_channels: int = 32
+    """Channels of each of the CNN's four convolutions (shared by every view)."""
+    image_features: int = 64
+    """Features per view out of the CNN, fused with the state and instruction features."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.cameras, str):
+            self.cameras = [self.cameras]
+        self.cameras = [c.strip() for item in self.cameras for c in item.split(",") if c.strip()]
+        if self.cameras and not (16 <= self.image_size <= 256 and self.image_channels >= 1 and self.image_features >= 1):
+            raise ValueError("policy.image_size must be in 16..256, policy.image_channels and image_features >= 1")
         for name in ("state_dim", "action_dim", "horizon", "n_exec", "hidden_dim", "num_layers", "num_inference_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"policy.{name} must be >= 1, got {getattr(self, name)}")
         if self.n_exec > self.horizon:
             raise ValueError(f"policy.n_exec ({self.n_exec}) must be <= policy.horizon ({self.horizon})")
+        if self.time_embed_dim < 2 or self.time_embed_dim % 2:
+            raise ValueError(f"policy.time_embed_dim must be even and >= 2 (sine and cosine pairs), got {self.time_embed_dim}")
+        if self.lang_dim < 0 or (self.lang_dim > 0 and self.lang_proj_dim < 1):
+            raise ValueError(f"policy.lang_dim must be >= 0 and policy.lang_proj_dim >= 1, got {self.lang_dim}, {self.lang_proj_dim}")
+        if not (0 < self.state_min_std < float("inf") and 0 < self.state_clip < float("inf")):
+            raise ValueError(f"policy.state_min_std and policy.state_clip must be finite and > 0, got "
+                             f"{self.state_min_std}, {self.state_clip}")
 
     def to_dict(self) -> dict:
         return asdict(self)
