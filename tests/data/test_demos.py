@@ -145,18 +145,6 @@ def test_chunks_repeat_the_last_action_past_the_end_and_mask_it():
     assert everything["mask"][3:].tolist() == [[True, True], [True, False]]
 
 
-def test_chunks_carry_the_camera_frames_every_episode_has():
-    pushed = make_episode("push-v3", [[1.0] * 4, [2.0] * 4])
-    reached = make_episode("reach-v3", [[3.0] * 4])
-    frames = np.arange(3 * 2 * 2 * 3, dtype=np.uint8).reshape(3, 2, 2, 3)
-    pushed.images = {"image": frames, "wrist_image": frames}
-    reached.images = {"image": frames[:2]}
-    data = demos_to_chunks([pushed, reached], ["reach-v3", "push-v3"], horizon=2)
-    assert set(data["obs"]) == {"state", "task", "image"}  # the wrist camera is missing from one episode
-    assert data["obs"]["image"].dtype == torch.uint8
-    torch.testing.assert_close(data["obs"]["image"], torch.from_numpy(np.concatenate([frames[:2], frames[:1]])))
-
-
 def test_chunks_refuse_unknown_tasks_and_empty_input():
     pushed = make_episode("push-v3", [[1.0] * 4])
     with pytest.raises(ValueError, match="push-v3"):
