@@ -18,6 +18,7 @@ from typing import Callable
 import torch
 from tqdm.auto import tqdm
 
+from stepnft import distributed
 from stepnft.algos.base import make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
@@ -30,8 +31,12 @@ from stepnft.runs import MetricLogger, plot_learning_curve, prepare_run_dir, ref
 
 
 def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
-    """Run (or resume) a training run; returns the summary also written to ``summary.json``."""
+    """Run (or resume) a training run; returns the summary also written to ``summary.json``.
+    Under ``torchrun`` rank 0 runs it and the other processes share its updates (``_follow``)."""
+    if distributed.init() and distributed.rank() > 0:
+        return _follow(cfg)
     with ExitStack() as stack:
+        stack.callback(distributed.close)
         run_dir, sim, tasks, collector = _start_run(cfg, stack, resume)
         evaluate = _evaluator(collector, cfg.eval.seed)
         if resume:
@@ -54,6 +59,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             start, env_steps = 0, 0
             before = evaluate(policy, cfg.eval.episodes)
             log("before RL:\n" + format_table(None, before))
+        distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
         logger = MetricLogger(run_dir, resume_iteration=start if resume else None)
         stack.callback(logger.close)
         if not resume:
@@ -69,6 +75,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             t0 = time.perf_counter()
             batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout)
             env_steps += batch.env_steps
+            distributed.broadcast((batch, it))
             t1 = time.perf_counter()
             metrics = algo.update(batch)
             metrics |= algo.end_iteration(it)
@@ -77,7 +84,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             record = {"iteration": iteration, "env_steps": env_steps,
                       "charts/rollout_success_rate": float(batch.episode_success.double().mean()),
                       "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
-                      "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics}
+                      "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **collector.pop_metrics()}
             last = iteration == cfg.iterations or out_of_budget()
             if cfg.eval.every and iteration % cfg.eval.every == 0 and not last:
                 record |= _eval_record(evaluate(algo.eval_policy(), cfg.eval.during_episodes))
@@ -93,6 +100,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             if last:
                 break
         bar.close()
+        distributed.broadcast(None)  # the other processes are done
 
         final = algo.eval_policy()
         after = evaluate(final, cfg.eval.episodes)
@@ -112,6 +120,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
 
 def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     """``stepnft sft``: few-shot SFT on the demonstrations, saved to ``RUN/policy``, then evaluated."""
+    if distributed.launched():
+        raise ValueError("stepnft sft runs in one process: start it without torchrun")
     with ExitStack() as stack:
         run_dir, sim, tasks, collector = _start_run(cfg, stack)
         save_config(cfg, run_dir / "config.yaml")
@@ -138,10 +148,32 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
         refuse_existing_run(run_dir)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
-    venv = make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed)
-    collector = Collector(venv, seed=cfg.seed)
+    if cfg.ray.workers > 0:
+        from stepnft.rollout.ray_collector import RayCollector
+
+        collector = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, cfg.ray, num_threads=cfg.num_threads)
+    else:
+        collector = Collector(make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed), seed=cfg.seed)
     stack.callback(collector.close)
     return run_dir, sim, tasks, collector
+
+
+def _follow(cfg: TrainConfig) -> dict:
+    """A process of rank > 0 under ``torchrun``: takes rank 0's policy and algorithm state,
+    then updates on every batch rank 0 sends, in step with it (``stepnft.distributed``)."""
+    try:
+        torch.set_num_threads(cfg.num_threads)
+        policy, state, generator_state = distributed.broadcast()
+        algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator())
+        algo.load_state_dict(state)
+        algo.generator.set_state(generator_state)
+        while (message := distributed.broadcast()) is not None:
+            batch, it = message
+            algo.update(batch)
+            algo.end_iteration(it)
+    finally:
+        distributed.close()
+    return {}
 
 
 def _initial_policy(cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, log) -> Policy:
@@ -164,7 +196,7 @@ def _evaluator(collector: Collector, seed: int):
             def progress(done, total):
                 bar.total, bar.n = total, done
                 bar.refresh()
-            return evaluate_policy(policy, collector.venv, episodes, seed, progress=progress)
+            return evaluate_policy(policy, collector, episodes, seed, progress=progress)
     return evaluate
 
 

@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
 from stepnft.batch import Batch
+from stepnft.distributed import backward, data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
@@ -155,7 +156,9 @@ def stepnft_update(
 ) -> dict[str, float]:
     """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
     steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary).
-    Returns metrics averaged over minibatch steps, under stable names."""
+    Returns metrics averaged over minibatch steps, under stable names. Under ``torchrun`` the
+    processes share each minibatch (``stepnft.distributed``): the same steps as one process."""
+    learner = data_parallel(policy)
     y = batch.step_success.float() * 2 - 1
     weights = sample_weights(batch, y, cfg)
     sums: dict[str, float] = defaultdict(float)
@@ -167,7 +170,8 @@ def stepnft_update(
             if w is not None and not bool(w.sum() > 0):
                 skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
                 continue
-            v = policy.velocity(policy.processor(batch.steps_obs(idx)), batch.x_t[idx], batch.t[idx])
+            v = shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
+                                                   batch.t[part]), idx)
             loss, metrics = stepnft_loss(
                 v, batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], cfg.noise_level,
                 y[idx], beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,
@@ -183,7 +187,7 @@ def stepnft_update(
             if stopped:
                 break
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            backward(loss)
             sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
             optimizer.step()
             steps += 1

@@ -40,9 +40,11 @@ def get_simulator(name: str):
     return getattr(importlib.import_module(module), cls)()
 
 
-def make_vec_env(env_cfg, n_exec: int, seed: int):
+def make_vec_env(env_cfg, n_exec: int, seed: int, sub_envs=None):
     """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
-    ``n_exec`` actions; sub-env streams seeded from ``seed``."""
+    ``n_exec`` actions; sub-env streams seeded from ``seed``; ``sub_envs``: only those (a
+    remote worker's share, see ``Simulator.make_vec_env``)."""
     return get_simulator(env_cfg.name).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
-        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers)
+        terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers,
+        sub_envs=sub_envs)
