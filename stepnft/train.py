@@ -59,7 +59,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             start, env_steps = 0, 0
             before = evaluate(policy, cfg.eval.episodes)
             log("before RL:\n" + format_table(None, before))
-        distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
+        if distributed.world_size() > 1:
+            distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
         logger = MetricLogger(run_dir, resume_iteration=start if resume else None)
         stack.callback(logger.close)
         if not resume:

@@ -225,3 +225,24 @@ def test_eval_writes_its_results(capsys, workspace, tmp_path):
     assert code == 0 and "reach-v3" in stdout
     result = json.loads(out.read_text())
     assert result["tasks"]["reach-v3"]["episodes"] == 3 and result["episodes"] == 3
+
+
+def test_ray_workers_without_ray_installed_is_one_line(capsys, monkeypatch, tmp_path):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else find_spec(name, *a))
+    line = assert_one_line_error(*run_cli(capsys, "train", "--run-dir", tmp_path / "run", "--ray.workers", 2)[::2],
+                                 "train")
+    assert 'needs Ray, which is not installed: pip install "stepnft[ray]"' in line
+    assert not (tmp_path / "run").exists()
+    code, out, _ = run_cli(capsys, "train", "--help")  # the options are listed all the same
+    assert code == 0 and "--ray.workers" in out and "--ray.address" in out and "--ray.max-restarts" in out
+
+
+def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
+    cfg, resume = _config_from_argv(["--resume", str(workspace / "run"), "--ray.timeout-s", "30"], "stepnft train", True)
+    assert resume and cfg.ray.timeout_s == 30 and cfg.iterations == 2
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", 30,
+                                          "--seed", 3)[::2], "train")
+    assert "takes no other flags than --ray.*" in line
