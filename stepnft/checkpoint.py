@@ -22,7 +22,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from stepnft.policies.base import Policy
+from stepnft.policies.base import Policy, non_finite
 from stepnft.runs import write_atomic
 
 KEEP = 2  # checkpoints kept on disk
@@ -67,10 +67,13 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) 
     for stale in root.glob(".tmp-*"):  # left by a writer that was killed
         shutil.rmtree(stale, ignore_errors=True)
     name = f"iter_{iteration:06d}"
+    skeleton, tensors = flatten_state({**state, "iteration": iteration})
+    bad = non_finite(tensors)
+    if bad:
+        raise ValueError(f"refusing to write checkpoint {name} with non-finite values ({len(bad)} tensors)")
     tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tmp-"))
     try:
         policy.save_pretrained(tmp / "policy")
-        skeleton, tensors = flatten_state({**state, "iteration": iteration})
         save_file(tensors, str(tmp / "state.safetensors"))
         (tmp / "state.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "state": skeleton}))
         final = root / name

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import dataclasses
 import json
 import sys
@@ -52,10 +53,29 @@ def _parse(cls, argv: list[str], default, prog: str):
     """
     import tyro
 
-    with _validation_deferred(default):
-        parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
+    errors = io.StringIO()
+    try:
+        with _validation_deferred(default), contextlib.redirect_stderr(errors):
+            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
+    except SystemExit as stop:
+        if stop.code not in (0, None):
+            raise UsageError(f"{_first_message(errors.getvalue())}; see `{prog} --help`") from None
+        raise
     _validate(parsed)
     return parsed
+
+
+def _first_message(box: str) -> str:
+    """The first paragraph of tyro's boxed error message, as one line."""
+    lines = []
+    for line in box.splitlines()[1:]:
+        text = line.strip().strip("│╭╮╰╯").strip()
+        if set(text) <= set("─ "):
+            if lines:
+                break
+            continue
+        lines.append(text)
+    return " ".join(lines) or "invalid arguments"
 
 
 def _section_classes(obj) -> set[type]:
@@ -100,7 +120,7 @@ def _describe(cls) -> str:
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
                 " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
-                " the last checkpoint of a run; it takes no other flags).")
+                " the last checkpoint of a run; it takes no other flags than --ray.*).")
     return doc
 
 
@@ -267,6 +287,8 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from stepnft.algos.base import RunDiverged
+
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
@@ -277,13 +299,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return HANDLERS[command](rest)
-    except SystemExit as stop:
-        # tyro ends --help with code 0 and its own argument errors (after printing them) with 2.
+    except SystemExit as stop:  # tyro ends --help with code 0
         return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
     except (UsageError, ValueError, OSError) as err:
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"stepnft {command}: error: {message}", file=sys.stderr)
         return 2
+    except RunDiverged as err:
+        print(f"stepnft {command}: error: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"stepnft {command}: interrupted; `stepnft train --resume RUN_DIR` continues a training run", file=sys.stderr)
         return 130

@@ -15,6 +15,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import yaml
 
@@ -101,16 +102,22 @@ class EvalConfig:
     episodes: int = 100
     """Episodes per task for the before/after figures (>= 100 for reported numbers)."""
     seed: int = 0
-    """Episode e of a task starts from initial state ``seed + e``: the same for every checkpoint."""
+    """Test episode e of a task starts from initial state ``seed + e``: the same for every checkpoint."""
     every: int = 10
-    """Iterations between evaluations during training (0: only before and after)."""
+    """Iterations between validation evaluations during training (0: only before and after)."""
     during_episodes: int = 20
-    """Episodes per task for the evaluations during training (cheap, noisier)."""
+    """Episodes per task for the validation evaluations during training (cheap, noisier)."""
+    validation_seed: int = 1_000_000
+    """Validation episode e starts from initial state ``validation_seed + e``: disjoint from the
+    test states, so choosing ``best_policy/`` on them does not bias the reported figures."""
 
     def __post_init__(self) -> None:
         if self.episodes < 0 or self.every < 0 or self.during_episodes < 1 or self.seed < 0:
             raise ValueError(f"eval.episodes, eval.every and eval.seed must be >= 0 and eval.during_episodes >= 1, got "
                              f"{self.episodes}, {self.every}, {self.seed}, {self.during_episodes}")
+        if self.validation_seed < self.seed + self.episodes:
+            raise ValueError(f"eval.validation_seed ({self.validation_seed}) must be >= eval.seed + eval.episodes "
+                             f"({self.seed + self.episodes}): validation and test states must not overlap")
 
 
 @dataclass
@@ -153,7 +160,13 @@ class TrainConfig:
     iterations: int = 60
     """RL iterations: collect rollouts -> update -> end-of-iteration step (e.g. the EMA update)."""
     episodes_per_iteration: int = 20
-    """Episodes collected per iteration (rounded up to whole waves of all parallel envs)."""
+    """Episodes collected per iteration (with ``task_allocation: equal``, rounded up to whole
+    waves of all parallel envs)."""
+    task_allocation: Literal["equal", "informative"] = "equal"
+    """How an iteration's episodes are split over tasks: ``equal``, or ``informative`` (more to
+    tasks whose rollout success is far from 0 and 1; see stepnft.rollout.allocation)."""
+    allocation_floor: float = 0.3
+    """With ``informative``: the share of episodes split equally, so every task stays in play."""
     env_step_budget: int | None = None
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
@@ -178,11 +191,14 @@ class TrainConfig:
             "checkpoint_every": self.checkpoint_every >= 1,
             "num_threads": self.num_threads >= 1,
             "env_step_budget": self.env_step_budget is None or self.env_step_budget >= 1,
+            "allocation_floor": 0 <= self.allocation_floor <= 1,
+            "task_allocation": self.task_allocation in ("equal", "informative"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"{bad[0]}={getattr(self, bad[0])!r} is invalid: iterations must be >= 0, "
-                             "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1")
+                             "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1, "
+                             "allocation_floor in [0, 1]")
 
 
 @dataclass

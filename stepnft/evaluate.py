@@ -70,6 +70,12 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
             "episodes": episodes, "env_steps": env_steps}
 
 
+def tasks_below(before: dict, after: dict) -> list[str]:
+    """Tasks whose success after is below their success before by more than the after-CI
+    (the 95 % interval of ``after`` lies wholly below ``before``'s rate)."""
+    return [t for t, r in after["tasks"].items() if r["ci95"][1] < before["tasks"][t]["success"]]
+
+
 def episode_generators(seeds: list[int]) -> list[torch.Generator]:
     """The sampler generator of each evaluation episode, seeded by its initial-state seed: an
     episode's outcome depends only on the policy and that seed, not on the env layout."""

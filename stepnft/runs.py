@@ -11,6 +11,7 @@ import json
 import math
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 
@@ -42,13 +43,50 @@ def prepare_run_dir(path: str | Path, must_exist: bool = False) -> Path:
     return run_dir
 
 
-def refuse_existing_run(run_dir: Path) -> None:
-    """A new run must not overwrite another: refuse a folder that already holds one."""
+RUN_MARKER = "run.json"
+"""Names the kind of run a folder holds (``train`` or ``sft``): a folder belongs to one run."""
+
+
+def run_kind(run_dir: Path) -> str | None:
+    """The kind of run ``run_dir`` holds (``train``, ``sft``), ``other`` for a non-empty folder
+    that is no run, or None when it is empty or missing."""
+    marker = run_dir / RUN_MARKER
+    if marker.is_file():
+        try:
+            return str(json.loads(marker.read_text())["kind"])
+        except (ValueError, KeyError, TypeError):
+            return "other"
     if (run_dir / "checkpoints" / "LATEST").is_file():
-        raise ValueError(f"{run_dir} already holds a run with checkpoints: continue it with "
-                         f"`stepnft train --resume {run_dir}`, or choose another --run-dir")
-    if (run_dir / "config.yaml").is_file():
-        raise ValueError(f"{run_dir} already holds a run (config.yaml): choose another --run-dir")
+        return "train"  # written before run markers existed
+    if run_dir.is_dir() and any(not p.name.startswith(".") for p in run_dir.iterdir()):
+        return "other"
+    return None
+
+
+def check_free(run_dir: Path) -> None:
+    """A new run must not overwrite anything: refuse a folder that already holds something."""
+    held = run_kind(run_dir)
+    if held == "train":
+        raise ValueError(f"{run_dir} already holds a training run: continue it with `stepnft train --resume {run_dir}`, "
+                         "or choose another --run-dir")
+    if held == "sft":
+        raise ValueError(f"{run_dir} already holds an SFT run: start RL from it with `--init {run_dir}/policy` and "
+                         "another --run-dir")
+    if held is not None:
+        raise ValueError(f"{run_dir} is not empty: choose another --run-dir (a run folder holds one run only)")
+
+
+def mark_run(run_dir: Path, kind: str) -> None:
+    """Mark ``run_dir`` as holding a run of ``kind`` (``train`` or ``sft``)."""
+    write_atomic(run_dir / RUN_MARKER, json.dumps({"kind": kind}))
+
+
+def check_resumable(run_dir: Path) -> None:
+    """``--resume`` continues training runs only."""
+    held = run_kind(run_dir)
+    if held != "train":
+        what = {"sft": "an SFT run", None: "nothing", "other": "no stepnft run"}.get(held, f"a {held} run")
+        raise ValueError(f"cannot resume {run_dir}: it holds {what}, not a training run")
 
 
 def _finite_or_none(value):
@@ -65,7 +103,8 @@ class MetricLogger:
         kept = []
         if resume_iteration is not None and self.path.is_file():
             # Drop records written after the checkpoint we resume from: they will be redone.
-            kept = [r for r in read_metrics(self.path) if r.get("iteration", 0) <= resume_iteration and not r.get("final")]
+            kept = [r for r in read_metrics(self.path, drop_torn_tail=True)
+                    if r.get("iteration", 0) <= resume_iteration and not r.get("final")]
         write_atomic(self.path, "".join(json.dumps(r) + "\n" for r in kept))
         # TensorBoard drops the events a killed run wrote past the checkpoint, as above.
         purge_step = max((int(r.get("env_steps", 0)) for r in kept), default=-1) + 1
@@ -84,33 +123,56 @@ class MetricLogger:
         self.writer.close()
 
 
-def read_metrics(path: Path) -> list[dict]:
-    """The records of a ``metrics.jsonl``."""
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line]
+def read_metrics(path: Path, drop_torn_tail: bool = False) -> list[dict]:
+    """The records of a ``metrics.jsonl``. A last line cut short (the run was killed while
+    writing it) is dropped with a warning when ``drop_torn_tail``; any other bad line is a
+    ValueError naming the file."""
+    lines = [line for line in Path(path).read_text().splitlines() if line]
+    records = []
+    for i, line in enumerate(lines):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if drop_torn_tail and i == len(lines) - 1:
+                warnings.warn(f"dropped the torn last line of {path} (the run was stopped while writing it)",
+                              stacklevel=2)
+                break
+            raise ValueError(f"{path} line {i + 1} is not valid JSON ({err.msg}): repair or remove that line") from err
+    return records
 
 
 def plot_learning_curve(run_dir: Path) -> Path:
-    """``learning_curve.png``: evaluation and rollout success against env steps."""
+    """``learning_curve.png``: success against env steps, the average and one panel per task:
+    rollouts (Flow-SDE, acting policy), validation evaluations during training and the test
+    evaluations before and after (ODE)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     records = read_metrics(run_dir / "metrics.jsonl")
-    fig, ax = plt.subplots(figsize=(7, 4))
-    roll = [(r["env_steps"], r["charts/rollout_success_rate"]) for r in records
-            if r.get("charts/rollout_success_rate") is not None]
-    ev = [(r["env_steps"], r["charts/success_rate"]) for r in records if r.get("charts/success_rate") is not None]
-    if roll:
-        ax.plot(*zip(*roll), color="tab:gray", alpha=0.6, label="rollout (Flow-SDE, acting policy)")
-    if ev:
-        ax.plot(*zip(*ev), "o-", color="tab:blue", label="evaluation (ODE, fixed states)")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("success rate")
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
-    ax.set_title(f"stepnft: {run_dir.name}")
+    tasks = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith(("eval/", "rollout/"))})
+    panels = [("average", "charts/rollout_success_rate", "charts/validation_success_rate", "charts/success_rate")]
+    panels += [(t, f"rollout/{t}", f"validation/{t}", f"eval/{t}") for t in tasks]
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
+    for ax, (title, roll_key, val_key, test_key) in zip(axes.flat, panels):
+        for key, style, label in ((roll_key, dict(color="tab:gray", alpha=0.5), "rollout (Flow-SDE)"),
+                                  (val_key, dict(color="tab:blue", marker="o", ms=3), "validation (ODE)"),
+                                  (test_key, dict(color="tab:red", marker="s", ls="none"), "test (ODE)")):
+            points = [(r["env_steps"], r[key]) for r in records if r.get(key) is not None]
+            if points:
+                ax.plot(*zip(*points), label=label, **style)
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("env steps")
+    axes.flat[0].legend(loc="lower right", fontsize=7)
+    fig.suptitle(f"stepnft: {run_dir.name}")
     fig.tight_layout()
     out = run_dir / "learning_curve.png"
     fig.savefig(out, dpi=100)

@@ -1,15 +1,19 @@
 """The training loop: demonstrations -> few-shot SFT -> online RL -> evaluation, for any
 registered algorithm, simulator and policy.
 
-Each iteration: the collector plays episodes with the algorithm's acting policy -> the
-algorithm updates -> its end-of-iteration step (π-StepNFT: the EMA update). The run folder gets
-``config.yaml``, ``metrics.jsonl``, TensorBoard logs, checkpoints, ``learning_curve.png`` and
-``summary.json`` (``stepnft.runs``).
+Each iteration: the collector plays episodes with the algorithm's acting policy (split over
+tasks as ``task_allocation`` says) -> the algorithm updates -> its end-of-iteration step
+(π-StepNFT: the EMA update). Every ``eval.every`` iterations the evaluated policy plays ODE
+episodes from *validation* initial states; the best one so far is kept in ``best_policy/``.
+The final ``policy/`` and ``best_policy/`` are evaluated on the *test* states. The run folder
+gets ``config.yaml``, ``metrics.jsonl``, TensorBoard logs, checkpoints, ``learning_curve.png``
+and ``summary.json`` (``stepnft.runs``).
 """
 
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -19,15 +23,17 @@ import torch
 from tqdm.auto import tqdm
 
 from stepnft import distributed
-from stepnft.algos.base import make_algorithm
+from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
 from stepnft.envs import get_simulator, make_vec_env
-from stepnft.evaluate import evaluate_policy, format_table
-from stepnft.policies.base import Policy, load_policy
+from stepnft.evaluate import evaluate_policy, format_table, tasks_below
+from stepnft.policies.base import Policy, load_policy, non_finite
+from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
-from stepnft.runs import MetricLogger, plot_learning_curve, prepare_run_dir, refuse_existing_run, write_atomic
+from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
+                          run_kind, write_atomic)
 
 
 def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
@@ -37,36 +43,47 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         return _follow(cfg)
     with ExitStack() as stack:
         stack.callback(distributed.close)
-        run_dir, sim, tasks, collector = _start_run(cfg, stack, resume)
-        evaluate = _evaluator(collector, cfg.eval.seed)
+        run_dir, sim, tasks, collector = _start_run(cfg, stack, "train", resume)
+        evaluate = _evaluator(collector)
         if resume:
             ckpt = load_checkpoint(run_dir)
             policy, state = ckpt["policy"], ckpt["state"]
         else:
+            policy = _init_policy(cfg) if cfg.init else None
+            mark_run(run_dir, "train")
             save_config(cfg, run_dir / "config.yaml")
-            policy = _initial_policy(cfg, sim, tasks, run_dir, log)
+            policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
+                                              cfg.seed, run_dir / "lang_cache", log)
             policy.save_pretrained(run_dir / "sft_policy")
         policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
+        allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
         if resume:
             algo.load_state_dict(state["algorithm"])
             algo.generator.set_state(state["algorithm_generator"])
             collector.load_state_dict(state["collector"])
+            allocator.load_state_dict(state["allocator"])
             torch.set_rng_state(state["torch_rng"])
-            start, env_steps, before = state["iteration"], state["env_steps"], state["before"]
+            start, env_steps, before, best = state["iteration"], state["env_steps"], state["before"], state["best"]
             log(f"resuming {run_dir} from iteration {start} ({env_steps} env steps)")
         else:
             start, env_steps = 0, 0
-            before = evaluate(policy, cfg.eval.episodes)
+            before = evaluate(policy, cfg.eval.episodes, cfg.eval.seed)
             log("before RL:\n" + format_table(None, before))
+            allocator.success[:] = [before["tasks"][t]["success"] for t in tasks]
+            best = {"iteration": 0, "validation": None}
+            if cfg.eval.every:
+                best["validation"] = evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed)["average"]
+            policy.save_pretrained(run_dir / "best_policy")
         if distributed.world_size() > 1:
             distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
         logger = MetricLogger(run_dir, resume_iteration=start if resume else None)
         stack.callback(logger.close)
         if not resume:
-            logger.log({"iteration": 0, "env_steps": 0, **_eval_record(before)})
+            logger.log({"iteration": 0, "env_steps": 0, **_eval_record(before, "test"),
+                        "charts/validation_success_rate": best["validation"]})
 
-        t_start, last_eval, iteration = time.perf_counter(), before["average"] if not resume else None, start
+        t_start, iteration = time.perf_counter(), start
         out_of_budget = lambda: cfg.env_step_budget is not None and env_steps >= cfg.env_step_budget  # noqa: E731
         bar = stack.enter_context(tqdm(range(start, cfg.iterations), desc=cfg.algo.name, initial=start,
                                        total=cfg.iterations))
@@ -74,48 +91,71 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             if out_of_budget():  # a resumed run that had already spent its budget
                 break
             t0 = time.perf_counter()
-            batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout)
+            task_episodes = allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
+            batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
             env_steps += batch.env_steps
             distributed.broadcast((batch, it))
             t1 = time.perf_counter()
             metrics = algo.update(batch)
+            if non_finite(policy.state_dict()):  # the update guard should make this impossible
+                raise RunDiverged(f"the policy's weights became non-finite in iteration {it + 1} (algo.lr="
+                                  f"{cfg.algo.lr:g} too large?); the last checkpoint is intact")
             metrics |= algo.end_iteration(it)
+            allocator.update(batch)
             t2 = time.perf_counter()
             iteration = it + 1
-            record = {"iteration": iteration, "env_steps": env_steps,
-                      "charts/rollout_success_rate": float(batch.episode_success.double().mean()),
+            record = {"iteration": iteration, "env_steps": env_steps, **_rollout_record(batch, tasks),
                       "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
                       "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **collector.pop_metrics()}
             last = iteration == cfg.iterations or out_of_budget()
             if cfg.eval.every and iteration % cfg.eval.every == 0 and not last:
-                record |= _eval_record(evaluate(algo.eval_policy(), cfg.eval.during_episodes))
-                last_eval = record["charts/success_rate"]
+                current = algo.eval_policy()
+                validation = evaluate(current, cfg.eval.during_episodes, cfg.eval.validation_seed)
+                record |= _eval_record(validation, "validation")
+                if validation["average"] > best["validation"]:
+                    best = {"iteration": iteration, "validation": validation["average"]}
+                    current.save_pretrained(run_dir / "best_policy")
             logger.log(record)
             bar.set_postfix(rollout=f"{record['charts/rollout_success_rate']:.2f}",
-                            eval="-" if last_eval is None else f"{last_eval:.2f}", refresh=False)
+                            best=f"{best['validation'] or 0:.2f}@{best['iteration']}", refresh=False)
             if iteration % cfg.checkpoint_every == 0 or last:
                 save_checkpoint(run_dir, iteration, policy, {
-                    "env_steps": env_steps, "before": before, "algorithm": algo.state_dict(),
-                    "algorithm_generator": algo.generator.get_state(),
-                    "collector": collector.state_dict(), "torch_rng": torch.get_rng_state()})
+                    "env_steps": env_steps, "before": before, "best": best, "algorithm": algo.state_dict(),
+                    "algorithm_generator": algo.generator.get_state(), "collector": collector.state_dict(),
+                    "allocator": allocator.state_dict(), "torch_rng": torch.get_rng_state()})
             if last:
                 break
         bar.close()
         distributed.broadcast(None)  # the other processes are done
 
         final = algo.eval_policy()
-        after = evaluate(final, cfg.eval.episodes)
+        after = evaluate(final, cfg.eval.episodes, cfg.eval.seed)
         final.save_pretrained(run_dir / "policy")
-        logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after)})
+        if best["iteration"] == iteration:  # the last validation was the best: same weights
+            best_after = after
+            shutil.copytree(run_dir / "policy", run_dir / "best_policy", dirs_exist_ok=True)
+        else:
+            best_policy = load_policy(run_dir / "best_policy")
+            best_policy.processor.bind_instructions(collector.venv.instructions, run_dir / "lang_cache")
+            best_after = evaluate(best_policy, cfg.eval.episodes, cfg.eval.seed)
+        logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after, "test")})
         plot_learning_curve(run_dir)
         summary = {
-            "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t]} for t in tasks},
-            "average": {"before": before["average"], "after": after["average"]},
+            "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t], "best": best_after["tasks"][t]}
+                      for t in tasks},
+            "average": {"before": before["average"], "after": after["average"], "best": best_after["average"]},
+            "below_start": tasks_below(before, after), "best_below_start": tasks_below(before, best_after),
+            "best_iteration": best["iteration"], "best_validation": best["validation"],
             "eval_episodes_per_task": cfg.eval.episodes, "env_steps": env_steps, "algorithm": cfg.algo.name,
             "wall_clock_s_this_session": time.perf_counter() - t_start, "seed": cfg.seed, "iterations": iteration,
         }
         write_atomic(run_dir / "summary.json", json.dumps(summary, indent=2))
-        log("before -> after:\n" + format_table(before, after))
+        log("before -> after (policy/):\n" + format_table(before, after))
+        log(f"best_policy/ (iteration {best['iteration']}, validation {best['validation']}): "
+            f"test average {best_after['average']:.3f}")
+        for name, below in (("policy/", summary["below_start"]), ("best_policy/", summary["best_below_start"])):
+            if below:
+                log(f"warning: {name} ends below its SFT start by more than the 95 % CI on: {', '.join(below)}")
         return summary
 
 
@@ -124,29 +164,44 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     if distributed.launched():
         raise ValueError("stepnft sft runs in one process: start it without torchrun")
     with ExitStack() as stack:
-        run_dir, sim, tasks, collector = _start_run(cfg, stack)
+        run_dir, sim, tasks, collector = _start_run(cfg, stack, "sft")
+        mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
                                 run_dir / "lang_cache", log)
         policy.save_pretrained(run_dir / "policy")
-        result = _evaluator(collector, cfg.eval.seed)(policy, cfg.eval.episodes)
+        result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
         log("SFT policy:\n" + format_table(None, result))
         return result
 
 
-def _start_run(cfg: TrainConfig, stack: ExitStack, resume: bool = False):
+def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = False):
     """What ``sft`` and ``train`` start with: checked tasks, a run folder that is free (or holds
-    the run to resume), seeds and threads, and a collector over the vector env (closed with
-    ``stack`` on every exit path). Returns ``(run_dir, simulator, tasks, collector)``."""
+    the training run to resume), seeds and threads, and a collector over the vector env (closed
+    with ``stack`` on every exit path). A folder this call creates is removed again if the run
+    fails before its first checkpoint (or, for SFT, before it finishes), and an empty one is
+    emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
     if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
         raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "
                          f"--policy.state-dim {sim.state_dim} --policy.action-dim {sim.action_dim}")
+    created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
-    if not resume:
-        refuse_existing_run(run_dir)
+    if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone
+        def remove_if_unfinished(exc_type, exc, tb):
+            done = (run_dir / "checkpoints" / "LATEST").is_file() or (run_dir / "summary.json").is_file()
+            if exc_type is not None and not done:
+                for child in run_dir.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+                if created:
+                    run_dir.rmdir()
+        stack.push(remove_if_unfinished)
+    if resume:
+        check_resumable(run_dir)
+    else:
+        check_free(run_dir)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
     if cfg.ray.workers > 0:
@@ -177,11 +232,8 @@ def _follow(cfg: TrainConfig) -> dict:
     return {}
 
 
-def _initial_policy(cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, log) -> Policy:
-    """The policy RL starts from: ``--init``, or few-shot SFT on the demonstrations."""
-    if not cfg.init:
-        return sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                              run_dir / "lang_cache", log)
+def _init_policy(cfg: TrainConfig) -> Policy:
+    """The ``--init`` policy, checked against the run's policy settings before anything is written."""
     policy = load_policy(cfg.init)
     if policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
@@ -190,9 +242,9 @@ def _initial_policy(cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, log)
     return policy
 
 
-def _evaluator(collector: Collector, seed: int):
-    """``evaluate(policy, episodes)`` on the run's envs and fixed states, with a progress bar."""
-    def evaluate(policy: Policy, episodes: int) -> dict:
+def _evaluator(collector: Collector):
+    """``evaluate(policy, episodes, seed)`` on the run's envs, with a progress bar."""
+    def evaluate(policy: Policy, episodes: int, seed: int) -> dict:
         with tqdm(total=1, desc=f"eval {episodes}/task", leave=False) as bar:
             def progress(done, total):
                 bar.total, bar.n = total, done
@@ -201,5 +253,19 @@ def _evaluator(collector: Collector, seed: int):
     return evaluate
 
 
-def _eval_record(result: dict) -> dict:
-    return {"charts/success_rate": result["average"], **{f"eval/{t}": r["success"] for t, r in result["tasks"].items()}}
+def _eval_record(result: dict, states: str) -> dict:
+    """Evaluation metrics: ``charts/success_rate`` + ``eval/<task>`` on test states,
+    ``charts/validation_success_rate`` + ``validation/<task>`` on validation states."""
+    if states == "test":
+        return {"charts/success_rate": result["average"], **{f"eval/{t}": r["success"] for t, r in result["tasks"].items()}}
+    return {"charts/validation_success_rate": result["average"],
+            **{f"validation/{t}": r["success"] for t, r in result["tasks"].items()}}
+
+
+def _rollout_record(batch, tasks: list[str]) -> dict:
+    record = {"charts/rollout_success_rate": float(batch.episode_success.double().mean())}
+    for k, task in enumerate(tasks):
+        mine = batch.episode_task == k
+        record[f"rollout/{task}"] = float(batch.episode_success[mine].double().mean()) if mine.any() else None
+        record[f"episodes/{task}"] = int(mine.sum())
+    return record

@@ -114,10 +114,27 @@ def test_comma_separated_tasks_work_everywhere():
     (["train", "--algo.name", "dqn"], "unknown algorithm 'dqn'; choose one of: stepnft"),
     (["train", "--env.name", "gazebo"], "env.name='gazebo' is unknown; choose one of: metaworld, bandit"),
     (["train", "--algo.sde-steps", "one"], "sde_steps=one needs algo.record_steps=one"),
+    (["train", "--algo.lr", "inf"], "algo.lr=inf is invalid"),
+    (["train", "--algo.noise-level", "1e6"], "algo.noise_level=1000000.0 is invalid"),
+    (["train", "--algo.noise-level", "inf"], "algo.noise_level=inf is invalid"),
+    (["train", "--algo.beta", "inf"], "algo.beta=inf is invalid"),
+    (["train", "--algo.kl-beta", "nan"], "algo.kl_beta=nan is invalid"),
+    (["train", "--algo.grad-clip", "nan"], "algo.grad_clip=nan is invalid"),
+    (["train", "--algo.max-drift", "0"], "algo.max_drift=0.0 is invalid"),
+    (["train", "--algo.ema-horizon", "0"], "algo.ema_horizon=0 is invalid"),
+    (["train", "--policy.state-min-std", "0"], "policy.state_min_std and policy.state_clip must be finite and > 0"),
+    (["train", "--policy.time-embed-dim", "63"], "policy.time_embed_dim must be even"),
+    (["train", "--num-threads", "0"], "num_threads=0 is invalid"),
+    (["train", "--num-threads", "-2"], "num_threads=-2 is invalid"),
+    (["train", "--env-step-budget", "-1"], "env_step_budget=-1 is invalid"),
+    (["train", "--eval.every", "-1"], "eval.every and eval.seed must be >= 0"),
+    (["train", "--env.num-workers", "-1"], "env.num_workers must be >= 0"),
+    (["demos", "--demos.action-noise", "nan"], "demos.action_noise must be a finite number >= 0"),
+    (["train", "--iterations", "notanint"], "Error parsing --iterations"),
 ])
 def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
     command = argv[0]
-    if command != "eval":
+    if command in ("train", "sft"):
         argv = argv + ["--run-dir", str(existing_run)]
     line = assert_one_line_error(*run_cli(capsys, *argv)[::2], command)
     assert expected in line
@@ -173,7 +190,13 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     started.mkdir()
     shutil.copy(workspace / "run" / "config.yaml", started)
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", started)[::2], "train")
+    assert "holds no stepnft run, not a training run" in line
+    (started / "run.json").write_text('{"kind": "train"}')
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", started)[::2], "train")
     assert "no checkpoint to resume" in line
+    (started / "run.json").write_text('{"kind": "sft"}')
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", started)[::2], "train")
+    assert "holds an SFT run, not a training run" in line
 
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
     assert "takes no other flags than --ray.*; drop: --iterations 9" in line
@@ -208,9 +231,8 @@ def test_unwritable_outputs_fail_before_any_work(capsys, workspace):
 
 @pytest.mark.parametrize("argv", [["train", "--iterations", "notanint"], ["train", "--no-such-flag", "1"],
                                   ["eval", "--episodes", "x"]])
-def test_tyro_argument_errors_exit_2_without_traceback(capsys, argv):
-    code, _, err = run_cli(capsys, *argv)
-    assert code == 2 and err and "Traceback" not in err
+def test_argument_errors_are_one_line_too(capsys, argv):
+    assert_one_line_error(*run_cli(capsys, *argv)[::2], argv[0])
 
 
 def test_unknown_command(capsys):
@@ -225,6 +247,96 @@ def test_eval_writes_its_results(capsys, workspace, tmp_path):
     assert code == 0 and "reach-v3" in stdout
     result = json.loads(out.read_text())
     assert result["tasks"]["reach-v3"]["episodes"] == 3 and result["episodes"] == 3
+
+
+def test_policy_configs_of_the_wrong_shape_are_one_line(capsys, workspace, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(workspace / "policy", bad)
+    config = json.loads((bad / "config.json").read_text())
+    for text in (json.dumps([1, 2]), json.dumps({**config, "hidden_dim": "wide"})):
+        (bad / "config.json").write_text(text)
+        for argv in (["eval", "--policy", bad], ["train", "--init", bad, "--run-dir", tmp_path / "never"]):
+            line = assert_one_line_error(*run_cli(capsys, *argv)[::2], argv[0])
+            assert "corrupt policy checkpoint" in line
+    assert not (tmp_path / "never").exists()
+
+
+def test_a_policy_with_non_finite_weights_is_refused(capsys, workspace, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    bad = tmp_path / "nan-policy"
+    shutil.copytree(workspace / "policy", bad)
+    weights = load_file(str(bad / "model.safetensors"))
+    next(iter(weights.values()))[0] = float("nan")
+    save_file(weights, str(bad / "model.safetensors"))
+    line = assert_one_line_error(*run_cli(capsys, "eval", "--policy", bad)[::2], "eval")
+    assert "non-finite values" in line
+    policy = tiny_policy()
+    with torch.no_grad():
+        next(policy.parameters()).fill_(float("inf"))
+    with pytest.raises(ValueError, match="refusing to save a policy with non-finite values"):
+        policy.save_pretrained(tmp_path / "never")
+    assert not (tmp_path / "never").exists()
+
+
+def test_a_failed_init_leaves_nothing_behind(capsys, tmp_path):
+    other = FlowPolicy(FlowPolicyConfig(hidden_dim=32))
+    other.save_pretrained(tmp_path / "other")
+    line = assert_one_line_error(*run_cli(capsys, "train", "--init", tmp_path / "other", "--run-dir", tmp_path / "run",
+                                          "--env.tasks", "reach-v3")[::2], "train")
+    assert "other policy settings" in line and not (tmp_path / "run").exists()
+    (tmp_path / "empty").mkdir()
+    assert_one_line_error(*run_cli(capsys, "train", "--init", tmp_path / "other", "--run-dir", tmp_path / "empty",
+                                   "--env.tasks", "reach-v3")[::2], "train")
+    assert list((tmp_path / "empty").iterdir()) == []
+
+
+def test_runs_never_overwrite_each_other(capsys, workspace, tmp_path):
+    sft_run = tmp_path / "sft-run"
+    sft_run.mkdir()
+    (sft_run / "run.json").write_text('{"kind": "sft"}')
+    (sft_run / "config.yaml").write_text("seed: 0\n")
+    before = snapshot(sft_run)
+    line = assert_one_line_error(*run_cli(capsys, "train", "--run-dir", sft_run)[::2], "train")
+    assert "already holds an SFT run: start RL from it with `--init" in line
+    line = assert_one_line_error(*run_cli(capsys, "sft", "--run-dir", workspace / "run")[::2], "sft")
+    assert "already holds a training run: continue it with `stepnft train --resume" in line
+    stray = tmp_path / "stray"
+    stray.mkdir()
+    (stray / "metrics.jsonl").write_text("{}\n")
+    line = assert_one_line_error(*run_cli(capsys, "train", "--run-dir", stray)[::2], "train")
+    assert "is not empty" in line
+    assert snapshot(sft_run) == before and (stray / "metrics.jsonl").read_text() == "{}\n"
+
+
+def test_demos_never_overwrite_other_demonstrations(capsys, tmp_path):
+    demos = tmp_path / "demos"
+    demos.mkdir()
+    (demos / "manifest.json").write_text('{"format": "stepnft-demos", "version": 1, "tasks": ["push-v3"]}')
+    line = assert_one_line_error(*run_cli(capsys, "demos", "--demos.path", demos, "--env.tasks", "reach-v3")[::2],
+                                 "demos")
+    assert "already holds demonstrations" in line
+    assert "push-v3" in (demos / "manifest.json").read_text()
+
+
+def test_a_full_disk_at_checkpoint_time_is_one_line_and_keeps_the_last_checkpoint(capsys, workspace, tmp_path,
+                                                                                   monkeypatch):
+    import errno
+
+    import stepnft.checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(workspace / "run", run)
+
+    def disk_full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(stepnft.checkpoint, "save_file", disk_full)
+    before = (run / "checkpoints" / "LATEST").read_text()
+    with pytest.raises(OSError):
+        save_checkpoint(run, 3, tiny_policy(), {"env_steps": 1})
+    assert (run / "checkpoints" / "LATEST").read_text() == before
+    assert not list((run / "checkpoints").glob(".tmp-*"))
 
 
 def test_ray_workers_without_ray_installed_is_one_line(capsys, monkeypatch, tmp_path):

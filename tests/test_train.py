@@ -64,7 +64,11 @@ def test_train_writes_every_artefact(finished_run, demos):
         for key in ("charts/rollout_success_rate", "losses/E_pos", "losses/E_neg", "losses/delta_v_norm",
                     "charts/ema_decay", "env_steps"):
             assert np.isfinite(r[key]), key
-    assert "charts/success_rate" in records[2] and "charts/success_rate" not in records[1]  # eval.every 2
+    # Validation evaluations every 2 iterations (not on the last: the test evaluation follows).
+    assert "charts/validation_success_rate" in records[2] and "validation/reach-v3" in records[2]
+    assert "charts/validation_success_rate" not in records[1] and "charts/success_rate" not in records[2]
+    assert records[0]["charts/success_rate"] is not None and records[0]["charts/validation_success_rate"] is not None
+    assert records[1]["episodes/reach-v3"] == 2 and "rollout/reach-v3" in records[1]
     env_steps = [r["env_steps"] for r in records[1:-1]]
     assert env_steps == sorted(env_steps) and env_steps[0] > 0
 
@@ -78,7 +82,9 @@ def test_train_writes_every_artefact(finished_run, demos):
     assert (run_dir / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     summary = json.loads((run_dir / "summary.json").read_text())
-    for when in ("before", "after"):
+    assert summary["best_iteration"] in (0, 2) and isinstance(summary["below_start"], list)
+    assert (run_dir / "best_policy" / "model.safetensors").is_file()
+    for when in ("before", "after", "best"):
         task = summary["tasks"]["reach-v3"][when]
         assert task["episodes"] == 2 and 0 <= task["success"] <= 1 and len(task["ci95"]) == 2
     assert summary["env_steps"] == records[-1]["env_steps"]
@@ -215,3 +221,71 @@ def test_sft_loss_falls_on_demonstrations(demos):
     policy.processor.fit(data["obs"]["state"])
     losses = sft_train(policy, data, SFTConfig(steps=150, batch_size=64, lr=1e-3), torch.Generator().manual_seed(0))
     assert np.mean(losses[-20:]) < 0.7 * np.mean(losses[:20])
+
+
+def test_best_policy_is_chosen_on_validation_states_and_reported_on_test_states(tmp_path):
+    """The bandit learns fast: the best validation policy is a trained one; the summary reports
+    it on the test states and names the tasks that ended below their start."""
+    import dataclasses
+
+    from stepnft.demo_bandit import bandit_config, run_bandit_demo
+
+    cfg = bandit_config(iterations=4, run_dir=str(tmp_path / "run"))
+    cfg = dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval, every=1, during_episodes=300))
+    summary = run_bandit_demo(cfg, log=lambda s: None)
+    assert summary["best_iteration"] >= 1 and summary["best_validation"] > summary["history"][0]["charts/validation_success_rate"]
+    assert summary["average"]["best"] > summary["average"]["before"] and summary["best_below_start"] == []
+    validation = [r["charts/validation_success_rate"] for r in summary["history"] if "charts/validation_success_rate" in r]
+    assert summary["best_validation"] == max(v for v in validation if v is not None)
+    assert (tmp_path / "run" / "learning_curve.png").is_file()
+
+
+def test_tasks_below_their_start_are_those_whose_interval_lies_below():
+    from stepnft.evaluate import tasks_below
+
+    before = {"tasks": {"a": {"success": 0.9}, "b": {"success": 0.5}, "c": {"success": 0.5}}}
+    after = {"tasks": {"a": {"success": 0.7, "ci95": [0.6, 0.8]}, "b": {"success": 0.45, "ci95": [0.35, 0.55]},
+                       "c": {"success": 0.9, "ci95": [0.8, 0.95]}}}
+    assert tasks_below(before, after) == ["a"]
+
+
+def test_a_diverging_run_leaves_only_finite_tensors_and_strict_json(tmp_path):
+    """A learning rate far too large: every tensor written stays finite; metrics.jsonl is strict
+    JSON; the run either ends or stops with RunDiverged, its checkpoint intact."""
+    import dataclasses
+
+    from stepnft.algos.base import RunDiverged
+    from stepnft.demo_bandit import bandit_config, run_bandit_demo
+    from stepnft.policies.base import non_finite
+
+    cfg = bandit_config(iterations=3, run_dir=str(tmp_path / "run"), checkpoint_every=1)
+    cfg = dataclasses.replace(cfg, algo=dataclasses.replace(cfg.algo, lr=1e6, nonfinite_patience=10_000))
+    try:
+        summary = run_bandit_demo(cfg, log=lambda s: None)
+        assert sum(r.get("losses/skipped_nonfinite", 0) for r in summary["history"]) > 0
+    except RunDiverged:  # stopped before its first checkpoint: the failed start is removed
+        assert not (tmp_path / "run").exists()
+        return
+    files = list((tmp_path / "run").rglob("*.safetensors"))
+    assert files
+    for f in files:
+        assert not non_finite(load_file(str(f))), f
+    for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines():
+        json.loads(line, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+
+
+def test_a_torn_metrics_line_is_dropped_on_resume_with_a_warning(finished_run, tmp_path):
+    import shutil
+
+    from stepnft.runs import MetricLogger
+
+    run_dir = tmp_path / "torn"
+    shutil.copytree(finished_run, run_dir)
+    path = run_dir / "metrics.jsonl"
+    path.write_text(path.read_text() + '{"iteration": 5, "env_ste')
+    with pytest.warns(UserWarning, match=f"dropped the torn last line of {path}"):
+        MetricLogger(run_dir, resume_iteration=4).close()
+    assert all(json.loads(line) for line in path.read_text().splitlines())
+    path.write_text('{"iteration": 1}\nnot json\n{"iteration": 2}\n')
+    with pytest.raises(ValueError, match="metrics.jsonl line 2 is not valid JSON"):
+        read_metrics(path, drop_torn_tail=True)

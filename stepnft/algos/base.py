@@ -15,12 +15,14 @@ resumes it exactly. ``algo.name`` in the config picks the class from ``ALGORITHM
 from __future__ import annotations
 
 import importlib
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import torch
 
+from stepnft import distributed
 from stepnft.batch import Batch
 from stepnft.policies.base import Policy
 
@@ -64,26 +66,71 @@ class AlgoConfig:
     """Passes over each iteration's samples."""
     minibatch_size: int = 128
     """Samples per gradient step."""
+    nonfinite_patience: int = 20
+    """Optimizer steps in a row whose loss or gradient is not finite (each is skipped and counted
+    as ``losses/skipped_nonfinite``) before the run stops with its last checkpoint intact."""
 
     def check(self) -> dict[str, bool]:
         """Named validity checks; subclasses add theirs. ``__post_init__`` raises on the first failure."""
         return {
-            "name": self.name in ALGORITHMS,
-            "lr": self.lr > 0,
+            "name": self.name in ALGORITHMS and algorithm_class(self.name).config_class is type(self),
+            "lr": 0 < self.lr < math.inf,
             "adam_betas": len(self.adam_betas) == 2 and all(0 <= b < 1 for b in self.adam_betas),
-            "adam_eps": self.adam_eps > 0,
-            "weight_decay": self.weight_decay >= 0,
-            "grad_clip": self.grad_clip > 0,
+            "adam_eps": 0 < self.adam_eps < math.inf,
+            "weight_decay": 0 <= self.weight_decay < math.inf,
+            "grad_clip": 0 < self.grad_clip < math.inf,
             "update_epochs": self.update_epochs >= 1,
             "minibatch_size": self.minibatch_size >= 1,
+            "nonfinite_patience": self.nonfinite_patience >= 1,
         }
 
     def __post_init__(self) -> None:
         self.adam_betas = tuple(self.adam_betas)
+        if self.name not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm {self.name!r}; choose one of: {', '.join(ALGORITHMS)}")
         bad = [k for k, ok in self.check().items() if not ok]
         if bad:
             k = bad[0]
             raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
+
+
+class RunDiverged(RuntimeError):
+    """Training produced non-finite values too often to go on; the last checkpoint is intact."""
+
+
+class NonFiniteGuard:
+    """Skips optimizer steps whose loss or gradient is not finite, counts them, and stops the
+    run after ``patience`` in a row (before anything non-finite reaches the weights)."""
+
+    def __init__(self, cfg: AlgoConfig):
+        self.cfg, self.in_a_row, self.skipped = cfg, 0, 0
+
+    def step(self, loss: torch.Tensor, params: list[torch.Tensor], optimizer: torch.optim.Optimizer) -> float | None:
+        """Backpropagate ``loss``, clip, and step if everything is finite; returns the gradient
+        norm, or None for a skipped step."""
+        optimizer.zero_grad(set_to_none=True)
+        grad_norm = None
+        if torch.isfinite(loss):
+            distributed.backward(loss)  # under torchrun: the whole minibatch's gradient on every process
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip))
+        if grad_norm is None or not math.isfinite(grad_norm):
+            optimizer.zero_grad(set_to_none=True)
+            self.skipped += 1
+            self.in_a_row += 1
+            if self.in_a_row >= self.cfg.nonfinite_patience:
+                raise RunDiverged(
+                    f"the loss or its gradient was not finite for {self.in_a_row} optimizer steps in a row: the "
+                    f"learning rate (algo.lr={self.cfg.lr:g}) or another scale of algo.* is likely too large; "
+                    "the last checkpoint is intact")
+            return None
+        self.in_a_row = 0
+        optimizer.step()
+        return grad_norm
+
+    def take_skipped(self) -> int:
+        """Steps skipped since the last call (for ``losses/skipped_nonfinite``)."""
+        skipped, self.skipped = self.skipped, 0
+        return skipped
 
 
 def make_optimizer(params, cfg: AlgoConfig) -> torch.optim.Optimizer:

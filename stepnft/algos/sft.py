@@ -9,7 +9,6 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
-from torch import Tensor
 from tqdm.auto import tqdm
 
 from stepnft.losses import flow_matching_loss

@@ -6,16 +6,17 @@ the training loop drives.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
 from stepnft.batch import Batch
-from stepnft.distributed import backward, data_parallel, shard_forward
+from stepnft.distributed import data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
@@ -29,7 +30,8 @@ class StepNFTConfig(AlgoConfig):
     name: str = "stepnft"
     """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
     noise_level: float = 0.2
-    """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, the exploration ablation)."""
+    """Flow-SDE noise level ``a`` of training rollouts, in [0, 10] (0: ODE rollouts, the
+    exploration ablation)."""
     record_steps: Literal["one", "all"] = "all"
     """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond the
     paper, ``all`` K of them: K times the training signal for the same simulator steps.
@@ -59,11 +61,16 @@ class StepNFTConfig(AlgoConfig):
     eval_ema: bool = False
     """Evaluate (and save as ``policy/``) the EMA rollout policy instead of the trained one
     (the reference evaluates the EMA policy)."""
-    label_balance: Literal["none", "global", "task"] = "global"
+    label_balance: Literal["none", "global", "task", "group"] = "global"
     """Beyond the paper: ``none`` (paper); ``global``: weight samples so successes and failures
     carry equal total weight (successful episodes are short, so positives are a minority of
-    stored samples); ``task``: the same within each task (a zero-mean signal per task).
+    stored samples); ``task``: the same within each task (a zero-mean signal per task);
+    ``group``: the same within each group of ``group_size`` episodes started from one initial
+    state (outcomes then compare actions, not how hard the initial state was).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
+    group_size: int = 1
+    """Episodes started from the same task and initial state, in groups (1: every episode from
+    its own state); with ``label_balance: group`` labels are balanced within each group."""
     episode_weighting: bool = True
     """Beyond the paper: every episode carries the same total weight, however many policy calls
     it made (failures run to the step cap and would otherwise dominate the batch: a failing
@@ -79,15 +86,21 @@ class StepNFTConfig(AlgoConfig):
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
 
     def check(self) -> dict[str, bool]:
+        finite = lambda x: x is not None and math.isfinite(x)  # noqa: E731
         return super().check() | {
-            "noise_level": self.noise_level >= 0,
-            "beta": self.beta > 0,
-            "beta_dpo": self.beta_dpo > 0,
+            "noise_level": finite(self.noise_level) and 0 <= self.noise_level <= 10,
+            "beta": finite(self.beta) and self.beta > 0,
+            "beta_dpo": finite(self.beta_dpo) and self.beta_dpo > 0,
+            "max_drift": self.max_drift is None or (finite(self.max_drift) and self.max_drift > 0),
+            "kl_beta": finite(self.kl_beta) and self.kl_beta >= 0,
+            "ema_horizon": self.ema_horizon is None or self.ema_horizon >= 1,
+            "drift_limit": self.drift_limit is None or (finite(self.drift_limit) and self.drift_limit > 0),
             "ema_base": 0 <= self.ema_base <= 1,
             "ema_target": 0 <= self.ema_target <= 1,
             "target": self.target in ("next", "x0"),
             "form": self.form in ("rank", "wmse"),
-            "label_balance": self.label_balance in ("none", "global", "task"),
+            "label_balance": self.label_balance in ("none", "global", "task", "group"),
+            "group_size": self.group_size >= 1 and (self.label_balance != "group" or self.group_size > 1),
             "sde_steps": self.sde_steps in ("all", "one"),
             "record_steps": self.record_steps in ("one", "all"),
         }
@@ -135,11 +148,18 @@ def informative_mask(y: Tensor, group: Tensor) -> Tensor:
     return keep
 
 
+def episode_groups(batch: Batch) -> Tensor:
+    """``[E]`` group id of every episode: episodes of one task from one initial state share it."""
+    keys = torch.stack([batch.episode_task, batch.episode_seed], dim=1)
+    return keys.unique(dim=0, return_inverse=True)[1]
+
+
 def sample_weights(batch: Batch, y: Tensor, cfg: StepNFTConfig) -> Tensor | None:
     """``[N]`` weights of the recorded steps from the options above (None: uniform)."""
     weights = episode_weights(batch.step_episode) if cfg.episode_weighting else None
     if cfg.label_balance != "none":
-        weights = label_weights(y, batch.step_task if cfg.label_balance == "task" else None, weights)
+        groups = {"global": None, "task": batch.step_task, "group": episode_groups(batch)[batch.step_episode]}
+        weights = label_weights(y, groups[cfg.label_balance], weights)
     if cfg.drop_uniform_tasks:
         weights = torch.ones(len(y)) if weights is None else weights
         weights = weights * informative_mask(y, batch.step_task).float()
@@ -153,11 +173,14 @@ def stepnft_update(
     batch: Batch,
     cfg: StepNFTConfig,
     generator: torch.Generator | None = None,
+    guard: NonFiniteGuard | None = None,
 ) -> dict[str, float]:
     """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
-    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary).
-    Returns metrics averaged over minibatch steps, under stable names. Under ``torchrun`` the
-    processes share each minibatch (``stepnft.distributed``): the same steps as one process."""
+    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary). Steps
+    with a non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over
+    minibatch steps, under stable names. Under ``torchrun`` the processes share each minibatch
+    (``stepnft.distributed``): the same steps as one process."""
+    guard = guard or NonFiniteGuard(cfg)
     learner = data_parallel(policy)
     y = batch.step_success.float() * 2 - 1
     weights = sample_weights(batch, y, cfg)
@@ -178,19 +201,19 @@ def stepnft_update(
                 mask=batch.mask[batch.call[idx]], target=cfg.target, form=cfg.form, actions=batch.actions[batch.call[idx]],
                 weight=w,
             )
-            for k, val in metrics.items():
-                sums[k] += val
-            seen += 1
-            # The guard looks before it steps: no update is taken from a policy already too far
-            # from v_old, so the drift stays near the limit however large the learning rate.
+            if math.isfinite(metrics["loss"]):
+                for k, val in metrics.items():
+                    sums[k] += val
+                seen += 1
+            # The drift guard looks before it steps: no update is taken from a policy already too
+            # far from v_old, so the drift stays near the limit however large the learning rate.
             stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
             if stopped:
                 break
-            optimizer.zero_grad(set_to_none=True)
-            backward(loss)
-            sums["grad_norm"] += float(nn.utils.clip_grad_norm_(policy.parameters(), cfg.grad_clip))
-            optimizer.step()
-            steps += 1
+            grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
+            if grad_norm is not None:
+                sums["grad_norm"] += grad_norm
+                steps += 1
         if stopped:
             break
     means = {k: v / max(seen, 1) for k, v in sums.items()}
@@ -198,7 +221,7 @@ def stepnft_update(
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
     out |= {f"losses/{k}": v for k, v in means.items()}
     out |= {"losses/update_steps": float(steps), "losses/drift_stopped": float(stopped),
-            "losses/skipped_empty": float(skipped)}
+            "losses/skipped_empty": float(skipped), "losses/skipped_nonfinite": float(guard.take_skipped())}
     return out
 
 
@@ -213,11 +236,12 @@ class StepNFT(Algorithm):
         super().__init__(policy, cfg, iterations, generator)
         self.ema = make_ema_copy(policy)
         self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.guard = NonFiniteGuard(cfg)
         self.ema_horizon = cfg.ema_horizon or iterations
 
     @property
     def rollout(self) -> RolloutSpec:
-        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps)
+        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps, self.cfg.group_size)
 
     def acting_policy(self) -> Policy:
         return self.ema.eval()
@@ -227,7 +251,7 @@ class StepNFT(Algorithm):
 
     def update(self, batch: Batch) -> dict[str, float]:
         self.policy.train()
-        return stepnft_update(self.policy, self.optimizer, batch, self.cfg, self.generator)
+        return stepnft_update(self.policy, self.optimizer, batch, self.cfg, self.generator, self.guard)
 
     def end_iteration(self, iteration: int) -> dict[str, float]:
         decay = ema_decay(iteration, self.ema_horizon, self.cfg.ema_base, self.cfg.ema_target)
@@ -235,8 +259,10 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict()}
+        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "nonfinite_in_a_row": self.guard.in_a_row}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.ema.load_state_dict(state["ema"])
         self.optimizer.load_state_dict(state["optimizer"])
+        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)

@@ -106,6 +106,9 @@ def generate_demos(
     if not action_noise >= 0 or not np.isfinite(action_noise):
         raise ValueError(f"action_noise must be a finite number >= 0, got {action_noise}")
     out_dir = Path(out_dir)
+    if (out_dir / "manifest.json").is_file():
+        raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
+                         "(--demos.path), or delete that one to regenerate it")
     out_dir.mkdir(parents=True, exist_ok=True)
 
     entries, discarded = [], {}
@@ -133,7 +136,7 @@ def generate_demos(
                             "length": len(episode.actions), "seed": episode.seed})
             kept += 1
             bar.update()
-            bar.set_postfix(task=task, discarded=attempts - kept)
+            bar.set_postfix(task=task, discarded=attempts - kept, refresh=False)
         discarded[task] = attempts - kept
         env.close()
     bar.close()

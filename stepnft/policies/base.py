@@ -21,9 +21,10 @@ from typing import Any, ClassVar
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
+from stepnft.runs import write_atomic
 from stepnft.sampling import ChunkSample, sample_chunk
 
 CONFIG_NAME = "config.json"
@@ -34,6 +35,11 @@ POLICY_TYPES: dict[str, str] = {
     "flow": "stepnft.policies.flow:FlowPolicy",
 }
 """Registered policy classes by saved ``type`` (imported on first use). A new policy adds a line."""
+
+
+def non_finite(tensors: dict[str, Tensor]) -> list[str]:
+    """Names of the floating-point tensors holding NaN or infinity."""
+    return [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
 def policy_class(type_name: str) -> type["Policy"]:
@@ -95,11 +101,16 @@ class Policy(nn.Module, ABC):
     # --- save / load ---------------------------------------------------------------------------
     def save_pretrained(self, directory: str | Path) -> Path:
         """Write ``config.json``, ``model.safetensors`` and ``processor.safetensors`` into ``directory``."""
+        weights = {k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}
+        processor = {k: v.contiguous() for k, v in self.processor.state_dict().items()}
+        bad = non_finite(weights | processor)
+        if bad:
+            raise ValueError(f"refusing to save a policy with non-finite values in {', '.join(bad[:3])}")
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        (directory / CONFIG_NAME).write_text(json.dumps({"type": self.type, **self.config.to_dict()}, indent=2))
-        save_file({k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}, str(directory / WEIGHTS_NAME))
-        save_file({k: v.contiguous() for k, v in self.processor.state_dict().items()}, str(directory / PROCESSOR_NAME))
+        write_atomic(directory / CONFIG_NAME, json.dumps({"type": self.type, **self.config.to_dict()}, indent=2))
+        write_atomic(directory / WEIGHTS_NAME, save(weights))
+        write_atomic(directory / PROCESSOR_NAME, save(processor))
         return directory
 
     @classmethod
@@ -120,6 +131,9 @@ class Policy(nn.Module, ABC):
                 raise ValueError(f"it holds a {type_name!r} policy, not a {cls.type!r} one")
             policy = target(target.config_class.from_dict(data))
             weights = load_file(str(weights_path), device=map_location)
+            bad = non_finite(weights)
+            if bad:
+                raise ValueError(f"non-finite values in {', '.join(bad[:3])}")
             processor_path = directory / PROCESSOR_NAME
             if processor_path.is_file():
                 policy.processor.load_state_dict(load_file(str(processor_path)))

@@ -9,11 +9,14 @@ is embedded once; the table is cached in memory and, when ``cache_dir`` is given
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 from pathlib import Path
 
 import torch
 from torch import Tensor
+
+from stepnft.runs import write_atomic
 
 DEFAULT_ENCODER = "default"
 
@@ -70,8 +73,11 @@ class LanguageEncoder:
         for text in list(missing):
             path = self._disk_key(text)
             if path is not None and path.is_file():
-                self._cache[text] = torch.load(path, weights_only=True)
-                missing.remove(text)
+                try:
+                    self._cache[text] = torch.load(path, weights_only=True)
+                    missing.remove(text)
+                except Exception:  # noqa: BLE001 - a damaged cache entry is recomputed
+                    path.unlink(missing_ok=True)
         if missing:
             with torch.no_grad():
                 out = self._load().encode(missing, convert_to_tensor=True, show_progress_bar=False)
@@ -80,5 +86,7 @@ class LanguageEncoder:
                 path = self._disk_key(text)
                 if path is not None:
                     path.parent.mkdir(parents=True, exist_ok=True)
-                    torch.save(self._cache[text], path)
+                    buffer = io.BytesIO()
+                    torch.save(self._cache[text], buffer)
+                    write_atomic(path, buffer.getvalue())
         return torch.stack([self._cache[t] for t in texts])

@@ -180,3 +180,35 @@ def test_the_algorithm_owns_ema_optimizer_and_their_state():
     other.load_state_dict(state)
     assert all(torch.equal(a, b) for a, b in zip(other.ema.state_dict().values(), algo.ema.state_dict().values()))
     assert other.optimizer.state_dict()["state"].keys() == algo.optimizer.state_dict()["state"].keys()
+
+
+def test_non_finite_steps_are_skipped_counted_and_stop_the_run_after_patience():
+    from stepnft.algos.base import RunDiverged
+
+    policy, batch = make_batch(n=64)
+    batch.x_next[:5] = float("nan")  # a poisoned sample in every epoch's first minibatch or so
+    cfg = StepNFTConfig(noise_level=0.3, minibatch_size=64, update_epochs=3, nonfinite_patience=10)
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-3)
+    before = [p.clone() for p in policy.parameters()]
+    metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
+    assert metrics["losses/skipped_nonfinite"] == 3 and metrics["losses/update_steps"] == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, policy.parameters()))
+    with pytest.raises(RunDiverged, match=r"not finite for 2 optimizer steps in a row.*algo.lr"):
+        stepnft_update(policy, opt, batch, dataclasses.replace(cfg, nonfinite_patience=2))
+
+
+def test_group_balance_compares_episodes_from_one_initial_state():
+    from stepnft.algos.stepnft import episode_groups, sample_weights
+
+    policy, batch = make_batch(n=8)
+    batch.episode_seed[:] = torch.tensor([7, 7, 7, 7, 9, 9, 9, 9])
+    batch.episode_task[:] = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1])
+    batch.episode_success[:] = torch.tensor([True, False, False, False, True, True, False, True])
+    groups = episode_groups(batch)
+    assert groups.tolist()[:4] == [groups[0].item()] * 4 and len(set(groups.tolist())) == 3
+    y = batch.step_success.float() * 2 - 1
+    w = sample_weights(batch, y, StepNFTConfig(label_balance="group", group_size=4, episode_weighting=False))
+    # Group (task 0, seed 7): one success against three failures -> 2.0 and 2/3.
+    torch.testing.assert_close(w[:4], torch.tensor([2.0, 2 / 3, 2 / 3, 2 / 3]))
+    assert w[4:6].tolist() == [1.0, 1.0]  # a group with one outcome only keeps its weights
+    assert StepNFT(policy, StepNFTConfig(group_size=4, label_balance="group"), 1, torch.Generator()).rollout.group_size == 4

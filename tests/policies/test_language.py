@@ -41,3 +41,12 @@ def test_loads_a_locally_created_checkpoint(tmp_path):
 def test_missing_encoder_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="cannot load language encoder"):
         LanguageEncoder(str(tmp_path / "missing")).embed(["x"])
+
+
+def test_a_damaged_cache_entry_is_recomputed(tmp_path):
+    enc = LanguageEncoder(cache_dir=tmp_path)
+    first = enc.embed(["open the door"])
+    (entry,) = list(tmp_path.glob("*.pt"))
+    entry.write_bytes(entry.read_bytes()[:20])  # truncated, as by a kill mid-write before writes were atomic
+    torch.testing.assert_close(LanguageEncoder(cache_dir=tmp_path).embed(["open the door"]), first)
+    assert not list(tmp_path.glob(".*tmp"))

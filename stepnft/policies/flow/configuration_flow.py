@@ -46,6 +46,13 @@ class FlowPolicyConfig:
                 raise ValueError(f"policy.{name} must be >= 1, got {getattr(self, name)}")
         if self.n_exec > self.horizon:
             raise ValueError(f"policy.n_exec ({self.n_exec}) must be <= policy.horizon ({self.horizon})")
+        if self.time_embed_dim < 2 or self.time_embed_dim % 2:
+            raise ValueError(f"policy.time_embed_dim must be even and >= 2 (sine and cosine pairs), got {self.time_embed_dim}")
+        if self.lang_dim < 0 or (self.lang_dim > 0 and self.lang_proj_dim < 1):
+            raise ValueError(f"policy.lang_dim must be >= 0 and policy.lang_proj_dim >= 1, got {self.lang_dim}, {self.lang_proj_dim}")
+        if not (0 < self.state_min_std < float("inf") and 0 < self.state_clip < float("inf")):
+            raise ValueError(f"policy.state_min_std and policy.state_clip must be finite and > 0, got "
+                             f"{self.state_min_std}, {self.state_clip}")
 
     def to_dict(self) -> dict:
         return asdict(self)
