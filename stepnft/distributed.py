@@ -5,8 +5,8 @@ balancing are statistics of the whole batch). Each minibatch is split between th
 each runs the policy forward and backward on its share (:func:`shard_forward`), receives the
 others' outputs without their autograd graphs, and computes the one-process loss on the whole
 minibatch; :class:`~torch.nn.parallel.DistributedDataParallel` all-reduces the gradients, so
-after :func:`backward` every process holds the one-process gradient (up to float rounding)
-and takes the same optimizer step.
+after :func:`backward` (which ``NonFiniteGuard.step`` calls) every process holds the
+one-process gradient (up to float rounding) and takes the same optimizer step.
 
 Rank 0 runs the training loop (rollouts, in process or on Ray workers; evaluation; logs;
 checkpoints) and :func:`broadcast` sends the start state and each batch to the others, which
