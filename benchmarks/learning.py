@@ -1,12 +1,15 @@
-"""Few-shot learning benchmark: SFT vs π-StepNFT on five MetaWorld tasks, several seeds.
+"""Few-shot learning benchmark: SFT vs π-StepNFT on MetaWorld tasks, several seeds.
 
 One multi-task policy per seed: scripted-expert demonstrations (seeded by the run seed) ->
-few-shot SFT -> π-StepNFT under a fixed env-step budget -> ODE evaluation on the fixed
-initial states. Prints and writes a table (task x {SFT, π-StepNFT} success with 95 % CIs,
-env steps, wall-clock) to ``--out``/learning.md and .json. A seed whose run folder already
-holds ``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end.
+few-shot SFT -> RL under the config's budget -> ODE evaluation of ``policy/`` and
+``best_policy/`` on the fixed test initial states. Prints and writes, under ``--out``:
+``learning.md`` (per task and seed: SFT -> final [95 % CI], the best policy, tasks that ended
+below their start), ``learning.json`` and ``learning.png`` (validation success against env steps,
+the average and every task, one line per seed). A seed whose run folder already holds
+``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end.
 
-    .venv/bin/python benchmarks/learning.py --seeds 0 1 2
+    .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
+    .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import time
 from pathlib import Path
 
 from stepnft.config import DEFAULT_TASKS, load_config
+from stepnft.runs import read_metrics
 from stepnft.train import train
 
 
@@ -26,12 +30,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="configs/quickstart.yaml", help="base run config (YAML); flags below override it")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="one full run per seed")
-    p.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="MetaWorld v3 tasks (one multi-task policy)")
+    p.add_argument("--tasks", nargs="+", default=None, help="MetaWorld v3 tasks (default: the config's)")
     p.add_argument("--demos", type=int, default=None, help="demonstrations per task (default: the config's)")
     p.add_argument("--task-demos", nargs="*", default=None, metavar="TASK=N",
                    help="per-task demonstration counts, e.g. door-open-v3=1 (default: the config's)")
     p.add_argument("--env-steps", type=int, default=None, help="RL env-step budget per run (default: the config's)")
-    p.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per task (>= 100 for reported figures)")
+    p.add_argument("--eval-episodes", type=int, default=100, help="test episodes per task (>= 100 for reported figures)")
     p.add_argument("--out", default="benchmarks/results/learning", help="folder for runs and the result table")
     return p.parse_args(argv)
 
@@ -42,9 +46,61 @@ def fmt(rates: list[float]) -> str:
     return f"{statistics.mean(rates):.2f} ± {statistics.stdev(rates):.2f}"
 
 
+def table(runs: list[dict], tasks: list[str]) -> str:
+    """Markdown: per task, SFT / final / best over seeds, and each seed's figures with CIs."""
+    cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f}, {r['ci95'][1]:.2f}]"  # noqa: E731
+    lines = ["| task | SFT | final | best (validation-chosen) | per seed: SFT → final [95 % CI] |", "|---|---|---|---|---|"]
+    for task in tasks:
+        rates = {w: [r["tasks"][task][w]["success"] for r in runs] for w in ("before", "after", "best")}
+        seeds = "; ".join(f"s{r['seed']}: {r['tasks'][task]['before']['success']:.2f} → {cell(r['tasks'][task]['after'])}"
+                          + (" ⚠" if task in r.get("below_start", []) else "") for r in runs)
+        lines.append(f"| {task} | {fmt(rates['before'])} | {fmt(rates['after'])} | {fmt(rates['best'])} | {seeds} |")
+    avg = {w: [r["average"][w] for r in runs] for w in ("before", "after", "best")}
+    seeds = "; ".join(f"s{r['seed']}: {r['average']['before']:.2f} → {r['average']['after']:.2f}" for r in runs)
+    lines.append(f"| **average** | {fmt(avg['before'])} | **{fmt(avg['after'])}** | {fmt(avg['best'])} | {seeds} |")
+    below = {r["seed"]: r.get("below_start", []) for r in runs}
+    lines.append("")
+    lines.append("⚠ = ended below its SFT start by more than the 95 % CI. Below start per seed: "
+                 + "; ".join(f"s{s}: {', '.join(b) or 'none'}" for s, b in below.items()) + ".")
+    return "\n".join(lines)
+
+
+def plot(out: Path, runs: list[dict], tasks: list[str]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("average", "charts/validation_success_rate")] + [(t, f"validation/{t}") for t in tasks]
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
+    for ax, (title, key) in zip(axes.flat, panels):
+        for r in runs:
+            records = read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
+            points = [(x["env_steps"], x[key]) for x in records if x.get(key) is not None]
+            if points:
+                ax.plot(*zip(*points), marker="o", ms=2, label=f"seed {r['seed']}")
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("env steps")
+    axes.flat[0].legend(fontsize=7, loc="lower right")
+    fig.suptitle("validation success (ODE) during π-StepNFT, per seed")
+    fig.tight_layout()
+    path = out / "learning.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     base = load_config(args.config)
+    tasks = list(args.tasks or base.env.tasks or DEFAULT_TASKS)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     demos = base.demos
@@ -56,43 +112,30 @@ def main(argv=None) -> dict:
     for seed in args.seeds:
         cfg = dataclasses.replace(
             base, seed=seed, run_dir=str(out / f"seed{seed}"),
-            env=dataclasses.replace(base.env, tasks=list(args.tasks)),
+            env=dataclasses.replace(base.env, tasks=tasks),
             demos=dataclasses.replace(demos, seed=seed, path=str(out / f"demos_seed{seed}")),
             eval=dataclasses.replace(base.eval, episodes=args.eval_episodes),
             env_step_budget=args.env_steps if args.env_steps is not None else base.env_step_budget,
         )
         done = Path(cfg.run_dir) / "summary.json"
-        if done.is_file():  # finished earlier (or in a parallel invocation): reuse it
-            summary = json.loads(done.read_text())
-            runs.append({"seed": seed, "wall_clock_s": summary.get("wall_clock_s", float("nan")), **summary})
-            continue
-        start = time.perf_counter()
-        summary = train(cfg)
-        summary["wall_clock_s"] = time.perf_counter() - start
-        done.write_text(json.dumps(summary, indent=2))
-        runs.append({"seed": seed, **summary})
+        if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
+            start = time.perf_counter()
+            summary = train(cfg)
+            summary["wall_clock_s"] = time.perf_counter() - start
+            done.write_text(json.dumps(summary, indent=2))
+        summary = json.loads(done.read_text())
+        runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary})
 
-    lines = ["| task | SFT | π-StepNFT | per seed (SFT → π-StepNFT, 95 % CI) |", "|---|---|---|---|"]
-    for task in args.tasks:
-        before = [r["tasks"][task]["before"]["success"] for r in runs]
-        after = [r["tasks"][task]["after"]["success"] for r in runs]
-        seeds = "; ".join(
-            f"s{r['seed']}: {r['tasks'][task]['before']['success']:.2f} → {r['tasks'][task]['after']['success']:.2f} "
-            f"[{r['tasks'][task]['after']['ci95'][0]:.2f}, {r['tasks'][task]['after']['ci95'][1]:.2f}]" for r in runs)
-        lines.append(f"| {task} | {fmt(before)} | {fmt(after)} | {seeds} |")
-    avg_b = [r["average"]["before"] for r in runs]
-    avg_a = [r["average"]["after"] for r in runs]
-    lines.append(f"| **average** | {fmt(avg_b)} | {fmt(avg_a)} | " + "; ".join(
-        f"s{r['seed']}: {r['average']['before']:.2f} → {r['average']['after']:.2f}" for r in runs) + " |")
-    steps = [r["env_steps"] for r in runs]
-    wall = [r["wall_clock_s"] for r in runs]
-    footer = (f"\nRL env steps per run: {fmt([float(s) for s in steps])}; wall-clock per run (incl. demos, SFT, "
-              f"2 evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
-              f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}.")
-    table = "\n".join(lines) + "\n" + footer
-    print(table)
-    (out / "learning.md").write_text(table + "\n")
-    result = {"args": vars(args), "runs": runs, "average": {"sft": avg_b, "stepnft": avg_a}}
+    steps = [float(r["env_steps"]) for r in runs]
+    wall = [r.get("wall_clock_s", float("nan")) for r in runs]
+    text = (table(runs, tasks) + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
+            f"3 test evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
+            f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}.")
+    print(text)
+    (out / "learning.md").write_text(text + "\n")
+    plot(out, runs, tasks)
+    result = {"args": vars(args), "tasks": tasks, "runs": runs,
+              "average": {w: [r["average"][w] for r in runs] for w in ("before", "after", "best")}}
     (out / "learning.json").write_text(json.dumps(result, indent=2))
     return result
 

@@ -24,6 +24,7 @@ COMMANDS = {
     "train": "online RL (π-StepNFT by default) from an SFT policy (runs SFT first if --init is not given)",
     "eval": "deterministic (ODE) evaluation of a policy on fixed initial states, with 95 % CIs",
     "demo-bandit": "the core demo: π-StepNFT on a contextual bandit, success per iteration",
+    "compare": "algorithms and ablations (PPO, GRPO, ...) from the same SFT start on one env-step budget",
 }
 
 CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval", "ray")
@@ -45,7 +46,7 @@ class UsageError(Exception):
     """Bad input: reported as one line, exit code 2."""
 
 
-def _parse(cls, argv: list[str], default, prog: str):
+def _parse(cls, argv: list[str], default, prog: str, description: str | None = None):
     """Parse ``argv`` over ``default`` into ``cls``; a bad value raises ValueError.
 
     tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
@@ -56,7 +57,7 @@ def _parse(cls, argv: list[str], default, prog: str):
     errors = io.StringIO()
     try:
         with _validation_deferred(default), contextlib.redirect_stderr(errors):
-            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=_describe(cls))
+            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
     except SystemExit as stop:
         if stop.code not in (0, None):
             raise UsageError(f"{_first_message(errors.getvalue())}; see `{prog} --help`") from None
@@ -275,7 +276,14 @@ def cmd_demo_bandit(argv: list[str]) -> int:
     return 0
 
 
-HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit}
+def cmd_compare(argv: list[str]) -> int:
+    from stepnft.compare import CompareCommand, help_text, run_compare
+
+    return run_compare(_parse(CompareCommand, argv, CompareCommand(), "stepnft compare", help_text()))
+
+
+HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit,
+            "compare": cmd_compare}
 
 
 def _usage() -> str:

@@ -5,8 +5,9 @@ balancing are statistics of the whole batch). Each minibatch is split between th
 each runs the policy forward and backward on its share (:func:`shard_forward`), receives the
 others' outputs without their autograd graphs, and computes the one-process loss on the whole
 minibatch; :class:`~torch.nn.parallel.DistributedDataParallel` all-reduces the gradients, so
-after :func:`backward` (which ``NonFiniteGuard.step`` calls) every process holds the
-one-process gradient (up to float rounding) and takes the same optimizer step.
+after an ordinary ``loss.backward()`` every process holds the one-process gradient (up to
+float rounding) and takes the same optimizer step. Anything else an algorithm trains without
+:func:`shard_forward` (PPO's critic) is computed whole, identically, on every process.
 
 Rank 0 runs the training loop (rollouts, in process or on Ray workers; evaluation; logs;
 checkpoints) and :func:`broadcast` sends the start state and each batch to the others, which
@@ -87,17 +88,31 @@ def data_parallel(module: nn.Module) -> nn.Module:
     return _wrappers[module]
 
 
+class _ScaleGrad(torch.autograd.Function):
+    """The identity, with the gradient multiplied by ``scale`` on the way back."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, scale: float) -> Tensor:
+        ctx.scale = scale
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        return grad * ctx.scale, None
+
+
 def shard_forward(forward: Callable[[Tensor], Tensor], idx: Tensor) -> Tensor:
     """``forward(idx)``: outputs ``[len(idx), ...]`` for samples ``idx``. In a multi-process
     run each process computes its contiguous share of ``idx`` (through a
     :func:`data_parallel` module) and gathers the others' shares without their graphs: a loss
     on the result is the one-process loss, and its backward gives this process's part of the
-    gradient."""
+    gradient, scaled by the number of processes so that DDP's average of the parts is their
+    sum: the whole minibatch's gradient."""
     world = world_size()
     if world == 1:
         return forward(idx)
     parts = idx.tensor_split(world)
-    mine = forward(parts[rank()])
+    mine = _ScaleGrad.apply(forward(parts[rank()]), float(world))
     padded = mine.new_zeros((max(len(p) for p in parts), *mine.shape[1:]))  # all_gather needs equal sizes
     padded[: len(mine)] = mine.detach()
     gathered = [torch.empty_like(padded) for _ in range(world)]
@@ -105,9 +120,3 @@ def shard_forward(forward: Callable[[Tensor], Tensor], idx: Tensor) -> Tensor:
     gathered[rank()] = mine
     return torch.cat([g[: len(p)] for g, p in zip(gathered, parts)])
 
-
-def backward(loss: Tensor) -> None:
-    """``loss.backward()``; in a multi-process run scaled by the number of processes, so that
-    DistributedDataParallel's gradient average is the sum of the shares: the whole minibatch's
-    gradient."""
-    (loss * world_size() if world_size() > 1 else loss).backward()

@@ -1,4 +1,5 @@
-"""π-StepNFT objective, its ablations, and the flow-matching SFT loss (docs/algorithm.md §1, §4, §6).
+"""π-StepNFT objective, its ablations, PPO's clipped surrogate and the flow-matching SFT loss
+(docs/algorithm.md §1, §4, §6, §7).
 
 Pure functions that return ``(loss, metrics)``: ``metrics`` holds every named term as a
 detached float so trainers can log them and tests can check them.
@@ -122,6 +123,31 @@ def stepnft_loss(
             "delta_v_norm": ((delta_norm.squeeze(-1) * m).sum() / n).item(),
             "drift_clip_frac": (((scale.squeeze(-1) < 1.0).float() * m).sum() / n).item(),
             "pos_frac": (y > 0).float().mean().item(),
+        }
+    return loss, metrics
+
+
+def clipped_policy_loss(log_prob: Tensor, old_log_prob: Tensor, advantages: Tensor,
+                        clip_coef: float) -> tuple[Tensor, dict[str, float]]:
+    """PPO's clipped surrogate ``-mean(min(r A, clip(r, 1 - ε, 1 + ε) A))``, ``r = exp(log π - log π_old)``
+    (docs/algorithm.md §7); all inputs ``[B]``, ``log_prob`` with grad.
+
+    Metrics: ``policy_loss``, ``approx_kl`` (``mean((r - 1) - log r)``, unbiased, always >= 0),
+    ``old_approx_kl`` (``mean(-log r)``), ``clipfrac`` (share of ratios outside the clip range),
+    ``ratio_max``.
+    """
+    log_ratio = log_prob - old_log_prob
+    ratio = log_ratio.exp()
+    unclipped = -advantages * ratio
+    clipped = -advantages * ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef)
+    loss = torch.max(unclipped, clipped).mean()
+    with torch.no_grad():
+        metrics = {
+            "policy_loss": loss.item(),
+            "approx_kl": ((ratio - 1.0) - log_ratio).mean().item(),
+            "old_approx_kl": (-log_ratio).mean().item(),
+            "clipfrac": ((ratio - 1.0).abs() > clip_coef).float().mean().item(),
+            "ratio_max": ratio.max().item(),
         }
     return loss, metrics
 

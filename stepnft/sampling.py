@@ -7,6 +7,7 @@ A chunk is denoised over ``K`` steps on the grid ``t_k = 1 - k / K``; step ``k``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -45,6 +46,25 @@ def sde_step_mean_std(x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level
     """
     u, b, std = sde_step_coeffs(t, dt, noise_level)
     return u * x_t + b * v, std
+
+
+def sde_step_log_prob(x_next: Tensor, x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level: float,
+                      mask: Tensor | None = None) -> Tensor:
+    """Log-density ``[B]`` of ``x_next`` under the Flow-SDE step ``N(mean, std^2 I)`` from
+    ``(x_t, v)`` (the PPO/GRPO likelihood, docs/algorithm.md §7), summed over the action dims and
+    the chunk positions ``mask`` ``[B, H]`` marks (None: all).
+
+    A step with ``std = 0`` (``noise_level = 0``) is deterministic: it has no density and adds
+    0 (with a finite, zero gradient), so only the stochastic steps of a chain count.
+    """
+    mean, std = sde_step_mean_std(x_t, v, t, dt, noise_level)
+    stochastic = std > 0
+    safe_std = torch.where(stochastic, std, torch.ones_like(std))  # no 0/0 in value or gradient
+    per_entry = -0.5 * ((x_next - mean) / safe_std).pow(2) - safe_std.log() - 0.5 * math.log(2 * math.pi)
+    per_position = (per_entry * stochastic).sum(dim=-1)  # [B, H]
+    if mask is not None:
+        per_position = per_position * mask.to(per_position.dtype)
+    return per_position.sum(dim=-1)
 
 
 def flow_matching_pair(actions: Tensor, t: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:

@@ -94,7 +94,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             task_episodes = allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
             batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
             env_steps += batch.env_steps
-            distributed.broadcast((batch, it))
+            distributed.broadcast((batch, it, torch.get_rng_state()))
             t1 = time.perf_counter()
             metrics = algo.update(batch)
             if non_finite(policy.state_dict()):  # the update guard should make this impossible
@@ -224,7 +224,8 @@ def _follow(cfg: TrainConfig) -> dict:
         algo.load_state_dict(state)
         algo.generator.set_state(generator_state)
         while (message := distributed.broadcast()) is not None:
-            batch, it = message
+            batch, it, torch_rng = message
+            torch.set_rng_state(torch_rng)  # what the update draws (e.g. PPO's new critic) is rank 0's
             algo.update(batch)
             algo.end_iteration(it)
     finally:

@@ -1,5 +1,6 @@
 """The data-parallel learner: with 2 processes (gloo) the gradient of a minibatch, a whole
-π-StepNFT update and a whole ``torchrun`` training run equal one process's."""
+update of every algorithm (π-StepNFT, PPO with its critic, GRPO) and a whole ``torchrun``
+training run equal one process's."""
 
 import json
 import os
@@ -12,11 +13,13 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from stepnft import distributed
-from stepnft.algos.base import RolloutSpec, make_optimizer
-from stepnft.algos.stepnft import StepNFTConfig, stepnft_update
+from stepnft.algos.base import make_algorithm
+from stepnft.algos.grpo import GRPOConfig
+from stepnft.algos.ppo import PPOConfig
+from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.cli import main
-from stepnft.envs import make_vec_env
 from stepnft.config import EnvConfig
+from stepnft.envs import make_vec_env
 from stepnft.losses import stepnft_loss
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
 from stepnft.rollout.collector import Collector
@@ -24,7 +27,11 @@ from stepnft.runs import read_metrics
 
 BANDIT_POLICY = FlowPolicyConfig(state_dim=2, action_dim=2, horizon=2, n_exec=2, lang_dim=0, hidden_dim=32,
                                  num_layers=2)
-CFG = StepNFTConfig(noise_level=0.3, minibatch_size=37, update_epochs=2)  # 37: shares of 19 and 18
+ALGOS = {  # odd minibatches: the two processes' shares differ in size
+    "stepnft": StepNFTConfig(noise_level=0.3, minibatch_size=37, update_epochs=2),
+    "ppo": PPOConfig(noise_level=0.3, minibatch_size=13, update_epochs=2),
+    "grpo": GRPOConfig(noise_level=0.3, minibatch_size=13, update_epochs=2, group_size=2),
+}
 
 
 def new_policy() -> FlowPolicy:
@@ -32,75 +39,93 @@ def new_policy() -> FlowPolicy:
     return FlowPolicy(BANDIT_POLICY)
 
 
-def bandit_batch():
+def bandit_batches() -> dict:
+    """A batch per algorithm, collected as it asks (GRPO: groups of 2 from one initial state)."""
     venv = make_vec_env(EnvConfig(name="bandit", tasks=["bandit"], envs_per_task=50, max_episode_steps=2), 2, seed=0)
-    batch = Collector(venv, seed=0).collect(new_policy(), 100, RolloutSpec(0.3, record_steps="all"))
+    batches = {}
+    for name, cfg in ALGOS.items():
+        spec = make_algorithm(cfg, new_policy(), 1, torch.Generator()).rollout
+        batch = Collector(venv, seed=0).collect(new_policy(), 100, spec)
+        batch.episode_success[::3] = True  # a random policy never succeeds; the updates need both outcomes
+        batches[name] = batch
     venv.close()
-    return batch
+    return batches
 
 
 def minibatch_gradient(batch) -> dict[str, torch.Tensor]:
-    """The gradient of one minibatch's π-StepNFT loss, through the helpers the update uses."""
-    policy = new_policy()
+    """The gradient of one π-StepNFT minibatch loss, through the helpers the update uses."""
+    policy, cfg = new_policy(), ALGOS["stepnft"]
     learner = distributed.data_parallel(policy)
-    idx = torch.arange(3, 3 + CFG.minibatch_size)
+    idx = torch.arange(3, 3 + cfg.minibatch_size)
     y = batch.step_success.float() * 2 - 1
     v = distributed.shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
                                                        batch.t[part]), idx)
     loss, _ = stepnft_loss(v, batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx],
-                           CFG.noise_level, y[idx], mask=batch.mask[batch.call[idx]])
-    distributed.backward(loss)
+                           cfg.noise_level, y[idx], mask=batch.mask[batch.call[idx]])
+    loss.backward()
     return {name: p.grad.clone() for name, p in policy.named_parameters()}
 
 
-def whole_update(batch) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
-    policy = new_policy()
-    metrics = stepnft_update(policy, make_optimizer(policy.parameters(), CFG), batch, CFG,
-                             torch.Generator().manual_seed(1))
-    return policy.state_dict(), metrics
+def whole_update(name: str, batch) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
+    """Everything one iteration of algorithm ``name`` learns from ``batch``."""
+    algo = make_algorithm(ALGOS[name], new_policy(), 3, torch.Generator().manual_seed(1))
+    metrics = algo.update(batch) | algo.end_iteration(0)
+    return {**algo.policy.state_dict(), **{f"algo.{k}": v for k, v in flat_tensors(algo.state_dict())}}, metrics
+
+
+def flat_tensors(tree, prefix=""):
+    if torch.is_tensor(tree):
+        yield prefix, tree
+    elif isinstance(tree, dict):
+        for k, v in tree.items():
+            yield from flat_tensors(v, f"{prefix}.{k}" if prefix else str(k))
 
 
 def _rank(rank: int, world: int, init_file: str, batch_file: str, out_dir: str) -> None:
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
     try:
-        batch = torch.load(batch_file, weights_only=False)
-        torch.save({"grad": minibatch_gradient(batch), "update": whole_update(batch)}, f"{out_dir}/rank{rank}.pt")
+        batches = torch.load(batch_file, weights_only=False)
+        result = {"grad": minibatch_gradient(batches["stepnft"])}
+        result |= {name: whole_update(name, batch) for name, batch in batches.items()}
+        torch.save(result, f"{out_dir}/rank{rank}.pt")
     finally:
         dist.destroy_process_group()
 
 
 @pytest.fixture(scope="module")
 def two_processes(tmp_path_factory):
-    """What each of 2 processes computed, and the batch they shared."""
+    """What each of 2 processes computed, and the batches they shared."""
     tmp = tmp_path_factory.mktemp("ddp")
-    batch = bandit_batch()
-    torch.save(batch, tmp / "batch.pt")
-    mp.spawn(_rank, args=(2, str(tmp / "init"), str(tmp / "batch.pt"), str(tmp)), nprocs=2, join=True)
-    return batch, [torch.load(tmp / f"rank{r}.pt", weights_only=False) for r in range(2)]
+    batches = bandit_batches()
+    torch.save(batches, tmp / "batches.pt")
+    mp.spawn(_rank, args=(2, str(tmp / "init"), str(tmp / "batches.pt"), str(tmp)), nprocs=2, join=True)
+    return batches, [torch.load(tmp / f"rank{r}.pt", weights_only=False) for r in range(2)]
 
 
 def test_two_processes_get_the_one_process_gradient(two_processes):
-    batch, ranks = two_processes
+    batches, ranks = two_processes
     assert not dist.is_initialized() and distributed.world_size() == 1
-    alone = minibatch_gradient(batch)
+    alone = minibatch_gradient(batches["stepnft"])
     for rank in ranks:
         for name, grad in alone.items():
             torch.testing.assert_close(rank["grad"][name], grad, rtol=1e-5, atol=1e-7)
     assert any(g.abs().sum() > 0 for g in alone.values())
 
 
-def test_two_processes_take_the_one_process_update(two_processes):
-    batch, ranks = two_processes
-    weights, metrics = whole_update(batch)
-    assert metrics["losses/update_steps"] == 2 * -(-batch.num_steps // CFG.minibatch_size)
+@pytest.mark.parametrize("name", list(ALGOS))
+def test_two_processes_take_the_one_process_update(two_processes, name):
+    batches, ranks = two_processes
+    learned, metrics = whole_update(name, batches[name])
+    assert metrics["losses/update_steps"] > 0 and metrics["losses/skipped_nonfinite"] == 0
     for rank in ranks:
-        rank_weights, rank_metrics = rank["update"]
-        for name, value in weights.items():
-            torch.testing.assert_close(rank_weights[name], value, rtol=1e-4, atol=1e-6)
-        assert rank_metrics.keys() == metrics.keys()
-        assert all(rank_metrics[k] == pytest.approx(v, rel=1e-4, abs=1e-6) for k, v in metrics.items())
-    assert not torch.equal(weights["net.0.weight"], new_policy().state_dict()["net.0.weight"])
+        rank_learned, rank_metrics = rank[name]
+        assert rank_learned.keys() == learned.keys() and rank_metrics.keys() == metrics.keys()
+        for key, value in learned.items():
+            torch.testing.assert_close(rank_learned[key], value, rtol=1e-4, atol=1e-6)
+        for key, value in metrics.items():
+            assert rank_metrics[key] == pytest.approx(value, rel=1e-4, abs=1e-6, nan_ok=True), key
+    assert not torch.equal(learned["net.0.weight"], new_policy().state_dict()["net.0.weight"])
 
 
 @pytest.mark.slow

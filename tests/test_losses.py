@@ -142,3 +142,20 @@ def test_flow_matching_loss_known_value():
     mask = torch.tensor([[True, False], [True, False]])
     target[:, 1] = 10.0
     assert flow_matching_loss(pred, target, mask).item() == pytest.approx(3.0)
+
+
+def test_clipped_policy_loss_clips_the_ratio_on_the_side_the_advantage_pushes():
+    from stepnft.losses import clipped_policy_loss
+
+    old = torch.zeros(4)
+    log_prob = torch.log(torch.tensor([1.5, 1.5, 0.5, 1.0])).requires_grad_(True)
+    adv = torch.tensor([1.0, -1.0, -1.0, 2.0])
+    loss, metrics = clipped_policy_loss(log_prob, old, adv, clip_coef=0.2)
+    # min(r A, clip(r) A) per sample: 1.2 (clipped), -1.5, -0.8 (clipped), 2.0; loss = -mean.
+    assert loss.item() == pytest.approx(-(1.2 - 1.5 - 0.8 + 2.0) / 4)
+    assert metrics["clipfrac"] == pytest.approx(0.75)
+    ratio = torch.tensor([1.5, 1.5, 0.5, 1.0])
+    assert metrics["approx_kl"] == pytest.approx(((ratio - 1) - ratio.log()).mean().item())
+    loss.backward()
+    # Clipped samples get no gradient; the others -A r / 4.
+    torch.testing.assert_close(log_prob.grad, torch.tensor([0.0, 1.5 / 4, 0.0, -2.0 / 4]))

@@ -3,7 +3,8 @@ import math
 import pytest
 import torch
 
-from stepnft.sampling import ChunkSample, flow_matching_pair, sample_chunk, sde_step_coeffs, sde_step_mean_std
+from stepnft.sampling import (ChunkSample, flow_matching_pair, sample_chunk, sde_step_coeffs, sde_step_log_prob,
+                              sde_step_mean_std)
 
 
 def reference_step(x_t, v, t, dt, a):
@@ -135,3 +136,50 @@ def test_keep_path_gives_every_step_consistently():
     torch.testing.assert_close(steps["v_old"], v(steps["x_t"], steps["t"]))
     with pytest.raises(ValueError, match="keep_path"):
         sample_chunk(v, (2, 2, 3)).all_steps()
+
+
+def test_sde_step_log_prob_equals_an_independent_gaussian_density():
+    """Each stochastic entry: -(x - m)^2 / (2 s^2) - log s - log(2π) / 2 with m, s from the scalar
+    reference step; summed over action dims and the masked positions only."""
+    gen = torch.Generator().manual_seed(0)
+    b, h, a, noise = 4, 3, 2, 0.3
+    x_t, v = torch.randn(b, h, a, generator=gen), torch.randn(b, h, a, generator=gen)
+    t, dt = torch.tensor([1.0, 0.75, 0.5, 0.25]), torch.full((b,), 0.25)
+    x_next = torch.randn(b, h, a, generator=gen)
+    mask = torch.tensor([[1, 1, 1], [1, 1, 0], [1, 0, 0], [0, 0, 0]], dtype=torch.bool)
+    got = sde_step_log_prob(x_next, x_t, v, t, dt, noise, mask)
+    for i in range(b):
+        want = 0.0
+        for j in range(h):
+            for k in range(a):
+                if mask[i, j]:
+                    m, s = reference_step(x_t[i, j, k].item(), v[i, j, k].item(), t[i].item(), 0.25, noise)
+                    want += -((x_next[i, j, k].item() - m) ** 2) / (2 * s**2) - math.log(s) - 0.5 * math.log(2 * math.pi)
+        assert got[i].item() == pytest.approx(want, rel=1e-5, abs=1e-5)
+    assert got[3].item() == 0.0
+    full = sde_step_log_prob(x_next, x_t, v, t, dt, noise)
+    assert full[0].item() == pytest.approx(got[0].item()) and full[3].item() != 0.0  # no mask: every position counts
+
+
+def test_sde_step_log_prob_of_deterministic_steps_is_zero_with_finite_gradient():
+    x_t = torch.randn(3, 2, 2)
+    v = torch.randn(3, 2, 2, requires_grad=True)
+    t, dt = torch.tensor([1.0, 0.5, 0.25]), torch.full((3,), 0.25)
+    x_next = x_t - 0.25 * v.detach() + 0.1  # off the Euler step: a density would be -inf
+    logp = sde_step_log_prob(x_next, x_t, v, t, dt, 0.0)
+    assert torch.all(logp == 0)
+    logp.sum().backward()
+    assert torch.all(torch.isfinite(v.grad)) and torch.all(v.grad == 0)
+
+
+def test_sde_step_log_prob_is_highest_at_the_mean_and_its_gradient_moves_the_mean_toward_the_sample():
+    gen = torch.Generator().manual_seed(1)
+    x_t, v = torch.randn(1, 2, 2, generator=gen), torch.randn(1, 2, 2, generator=gen)
+    t, dt = torch.tensor([0.5]), torch.tensor([0.25])
+    mean, std = sde_step_mean_std(x_t, v, t, dt, 0.4)
+    x_next = mean + std * torch.randn(1, 2, 2, generator=gen)
+    assert sde_step_log_prob(mean, x_t, v, t, dt, 0.4) > sde_step_log_prob(x_next, x_t, v, t, dt, 0.4)
+    v = v.clone().requires_grad_(True)
+    sde_step_log_prob(x_next, x_t, v, t, dt, 0.4).sum().backward()
+    new_mean, _ = sde_step_mean_std(x_t, v.detach() + 1e-3 * v.grad, t, dt, 0.4)
+    assert (x_next - new_mean).norm() < (x_next - mean).norm()

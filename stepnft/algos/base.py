@@ -22,12 +22,13 @@ from typing import Any, ClassVar, Literal
 
 import torch
 
-from stepnft import distributed
 from stepnft.batch import Batch
 from stepnft.policies.base import Policy
 
 ALGORITHMS: dict[str, str] = {
     "stepnft": "stepnft.algos.stepnft:StepNFT",
+    "ppo": "stepnft.algos.ppo:PPO",
+    "grpo": "stepnft.algos.grpo:GRPO",
 }
 """Registered algorithms by ``algo.name`` (imported on first use). A new algorithm adds a line."""
 
@@ -111,7 +112,7 @@ class NonFiniteGuard:
         optimizer.zero_grad(set_to_none=True)
         grad_norm = None
         if torch.isfinite(loss):
-            distributed.backward(loss)  # under torchrun: the whole minibatch's gradient on every process
+            loss.backward()
             grad_norm = float(torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip))
         if grad_norm is None or not math.isfinite(grad_norm):
             optimizer.zero_grad(set_to_none=True)

@@ -1,0 +1,83 @@
+"""GRPO with Flow-SDE (docs/algorithm.md §7): PPO's likelihood and clipped surrogate
+(``stepnft.algos.ppo``) without a critic. The collector starts groups of G episodes of a task
+from one initial state (``RolloutSpec.group_size``); every call of an episode gets the episode's
+success normalised within its group. A group whose episodes all succeeded or all failed gives 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from stepnft.algos.base import Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
+from stepnft.algos.ppo import LikelihoodConfig, policy_gradient_update
+from stepnft.batch import Batch
+from stepnft.policies.base import Policy
+
+
+@dataclass
+class GRPOConfig(LikelihoodConfig):
+    """Hyperparameters of GRPO with Flow-SDE. ``minibatch_size`` counts policy calls."""
+
+    name: str = "grpo"
+    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
+    group_size: int = 4
+    """Episodes per group, started from the same task and initial state (env.envs_per_task must
+    be a multiple of it)."""
+
+    def check(self) -> dict[str, bool]:
+        return super().check() | {"group_size": self.group_size >= 2}
+
+
+def group_advantages(batch: Batch, eps: float = 1e-6) -> Tensor:
+    """``[E]`` per episode: ``(success - group mean) / (group std + eps)``, groups keyed by
+    ``(episode_task, episode_seed)``; std is the sample std (``n - 1``); 0 in a group whose
+    outcomes are all equal."""
+    key = torch.stack([batch.episode_task, batch.episode_seed], dim=1)
+    if bool((batch.episode_seed < 0).any()):
+        raise ValueError("GRPO needs episodes grouped by a shared reset seed (RolloutSpec.group_size >= 2)")
+    _, group = key.unique(dim=0, return_inverse=True)
+    success = batch.episode_success.float()
+    adv = torch.zeros_like(success)
+    for g in group.unique():
+        members = group == g
+        if int(members.sum()) < 2:
+            raise ValueError("a GRPO group holds a single episode: every group needs >= 2 episodes")
+        s = success[members]
+        adv[members] = (s - s.mean()) / (s.std() + eps)
+    return adv
+
+
+class GRPO(Algorithm):
+    """GRPO with Flow-SDE: the policy acts (no EMA), group-normalised success, no critic."""
+
+    name = "grpo"
+    config_class = GRPOConfig
+
+    def __init__(self, policy: Policy, cfg: GRPOConfig, iterations: int, generator: torch.Generator):
+        super().__init__(policy, cfg, iterations, generator)
+        self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.guard = NonFiniteGuard(cfg)
+
+    @property
+    def rollout(self) -> RolloutSpec:
+        return self.cfg.rollout_spec(self.cfg.group_size)
+
+    def acting_policy(self) -> Policy:
+        return self.policy.eval()
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        episode_adv = group_advantages(batch)
+        self.policy.train()
+        metrics = policy_gradient_update(self.policy, self.optimizer, batch, episode_adv[batch.episode], self.cfg,
+                                         self.generator, guard=self.guard)
+        return metrics | {"charts/informative_episode_frac": float((episode_adv != 0).float().mean())}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])

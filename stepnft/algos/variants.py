@@ -1,0 +1,79 @@
+"""Named variants: a name (``stepnft compare --algos NAME,...``) -> an algorithm and the config
+overrides that make it, applied on top of a base run config's ``algo`` section. The ablations of
+π-StepNFT run on its own code path, each one switch away (docs/algorithm.md §6); the baselines
+are the other registered algorithms (§7). ``stepnft compare --help`` lists them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from stepnft.algos.base import AlgoConfig, config_class
+
+
+@dataclass(frozen=True)
+class Variant:
+    algo: str
+    """The registered algorithm (``stepnft.algos.base.ALGORITHMS``)."""
+    about: str
+    """One line for ``--help`` and docs/baselines.md."""
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """``algo.*`` fields set on top of the base config."""
+
+
+PAPER_ALGO: dict[str, Any] = {
+    "noise_level": 0.2, "beta": 1.0, "beta_dpo": 1.0, "max_drift": 0.5, "kl_beta": 1e-4, "target": "next",
+    "form": "rank", "sde_steps": "all", "record_steps": "one", "label_balance": "none", "episode_weighting": False,
+    "drift_limit": None, "ema_base": 0.1, "ema_target": 0.995, "eval_ema": True,
+    "adam_betas": (0.9, 0.95), "adam_eps": 1e-5, "weight_decay": 0.01, "grad_clip": 1.0,
+}
+"""The paper's π-StepNFT settings (docs/algorithm.md §9), the ``algo`` section of
+configs/paper.yaml; the learning rate, epochs and minibatch stay the base config's (the paper's
+lr 1e-5 is for a 3B VLA and 64-128 envs)."""
+
+VARIANTS: dict[str, Variant] = {
+    "stepnft": Variant("stepnft", "π-StepNFT with the base config's (tuned) settings"),
+    "paper": Variant("stepnft", "π-StepNFT with the paper's settings (configs/paper.yaml)", PAPER_ALGO),
+    "ode": Variant("stepnft", "ablation: ODE exploration (noise 0): no ranking signal", {"noise_level": 0.0}),
+    "x0": Variant("stepnft", "ablation: final-action target x0 instead of the next step", {"target": "x0"}),
+    "wmse": Variant("stepnft", "ablation: DiffusionNFT weighted MSE instead of the ranking", {"form": "wmse"}),
+    "beta-0.5": Variant("stepnft", "ablation: trust factor β = 0.5", {"beta": 0.5}),
+    "beta-2": Variant("stepnft", "ablation: trust factor β = 2", {"beta": 2.0}),
+    "noise-0.2": Variant("stepnft", "ablation: noise level a = 0.2 (the paper's)", {"noise_level": 0.2}),
+    "noise-1": Variant("stepnft", "ablation: noise level a = 1.0", {"noise_level": 1.0}),
+    "ema-off": Variant("stepnft", "ablation: no EMA, the trained policy acts (decay 0)",
+                       {"ema_base": 0.0, "ema_target": 0.0}),
+    "ema-slow": Variant("stepnft", "ablation: slower EMA, decay 0.5 -> 0.999", {"ema_base": 0.5, "ema_target": 0.999}),
+    "ppo": Variant("ppo", "PPO with Flow-SDE and a critic, every denoising step stochastic"),
+    "ppo-one": Variant("ppo", "PPO with Flow-SDE, one stochastic step per call (πRL)", {"sde_steps": "one"}),
+    "grpo": Variant("grpo", "GRPO with Flow-SDE, group-normalised success, every step stochastic"),
+    "grpo-one": Variant("grpo", "GRPO with Flow-SDE, one stochastic step per call", {"sde_steps": "one"}),
+}
+"""Every variant ``stepnft compare`` knows. A new one adds a line."""
+
+SHARED_FIELDS = tuple(f.name for f in dataclasses.fields(AlgoConfig) if f.name != "name") + ("noise_level",)
+"""What a variant of another algorithm keeps from the base config: the optimizer settings and
+the exploration noise, so every method starts from the same choices."""
+
+
+def variant_config(name: str, base: AlgoConfig) -> AlgoConfig:
+    """The algo config of variant ``name`` on top of ``base``: all of ``base`` when it is the
+    same algorithm, else its :data:`SHARED_FIELDS`; then the variant's overrides."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r}; choose from: {', '.join(VARIANTS)}")
+    variant = VARIANTS[name]
+    values = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+    if base.name != variant.algo:
+        values = {k: v for k, v in values.items() if k in SHARED_FIELDS}
+    cls = config_class(variant.algo)
+    known = {f.name for f in dataclasses.fields(cls)}
+    values = {k: v for k, v in values.items() if k in known}
+    return cls(**{**values, **variant.overrides, "name": variant.algo})
+
+
+def describe_variants(indent: str = "  ") -> str:
+    """One line per variant: its name, algorithm and what it is."""
+    width = max(map(len, VARIANTS))
+    return "\n".join(f"{indent}{name:<{width}}  [{v.algo}] {v.about}" for name, v in VARIANTS.items())

@@ -1,0 +1,173 @@
+"""PPO and GRPO with Flow-SDE on hand-built batches: GAE, group normalisation, the likelihood of
+a call, the direction of an update, checkpoints, config checks."""
+
+import pytest
+import torch
+
+from stepnft.algos.base import make_algorithm
+from stepnft.algos.grpo import GRPOConfig, group_advantages
+from stepnft.algos.ppo import (PPOConfig, call_step_rows, gae, policy_gradient_update, steps_log_prob,
+                               success_rewards)
+from stepnft.batch import Batch
+from stepnft.checkpoint import flatten_state, unflatten_state
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+from stepnft.sampling import sde_step_log_prob
+
+
+def make_batch(episode, success, task=None, seed=None, noise_level=0.3, record_all=False, gen_seed=0):
+    """Calls in the given episode order (``episode`` [C]); an episode's last call is its ``done``."""
+    g = torch.Generator().manual_seed(gen_seed)
+    torch.manual_seed(gen_seed)
+    policy = FlowPolicy(FlowPolicyConfig(state_dim=3, lang_dim=0, action_dim=2, horizon=2, n_exec=2, hidden_dim=32))
+    episode = torch.as_tensor(episode)
+    n_calls, n_episodes = len(episode), len(success)
+    last = {int(e): i for i, e in enumerate(episode.tolist())}
+    done = torch.tensor([last[int(e)] == i for i, e in enumerate(episode.tolist())])
+    task = torch.zeros(n_episodes, dtype=torch.int64) if task is None else torch.as_tensor(task)
+    obs = {"state": torch.randn(n_calls, 3, generator=g), "task": task[episode]}
+    sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=g, keep_path=record_all)
+    if record_all:
+        steps = sample.all_steps()
+        steps["call"] = steps.pop("sample")
+    else:
+        steps = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t, "dt": sample.dt,
+                 "call": torch.arange(n_calls)}
+    batch = Batch(
+        episode_success=torch.as_tensor(success, dtype=torch.bool), episode_task=task,
+        episode_length=torch.bincount(episode, minlength=n_episodes) * 2,
+        episode_seed=torch.full((n_episodes,), -1) if seed is None else torch.as_tensor(seed), obs=obs,
+        actions=sample.actions, mask=torch.ones(n_calls, 2, dtype=torch.bool), reward=torch.zeros(n_calls),
+        done=done, episode=episode, **steps)
+    return policy, batch
+
+
+def test_gae_on_a_hand_computed_sequence():
+    # Two episodes interleaved as the collector writes them: ep 0 has calls 0, 2, 4 (succeeds),
+    # ep 1 has calls 1, 3 (fails).
+    episode = torch.tensor([0, 1, 0, 1, 0])
+    done = torch.tensor([False, False, False, True, True])
+    reward = torch.tensor([0.0, 0, 0, 0, 1])
+    value = torch.tensor([0.5, 0.2, 0.6, 0.1, 0.8])
+    adv, ret = gae(reward, value, done, episode, gamma=0.9, lam=0.8)
+    # ep 0: A4 = 1 - 0.8 = 0.2; A2 = (0.9*0.8 - 0.6) + 0.72*0.2 = 0.264; A0 = (0.9*0.6 - 0.5) + 0.72*0.264
+    # ep 1: A3 = -0.1; A1 = (0.9*0.1 - 0.2) + 0.72*(-0.1) = -0.182
+    torch.testing.assert_close(adv, torch.tensor([0.04 + 0.72 * 0.264, -0.182, 0.264, -0.1, 0.2]))
+    torch.testing.assert_close(ret, adv + value)
+    # λ = 1, γ = 1: the advantage is the episode's return minus the value.
+    adv, _ = gae(reward, value, done, episode, gamma=1.0, lam=1.0)
+    torch.testing.assert_close(adv, torch.tensor([0.5, -0.2, 0.4, -0.1, 0.2]))
+
+
+def test_sparse_success_reward_only_at_the_last_call_of_a_success():
+    _, batch = make_batch([0, 1, 0, 1, 0], success=[True, False])
+    assert success_rewards(batch).tolist() == [0, 0, 0, 0, 1]
+
+
+def test_group_normalisation_on_a_hand_built_batch():
+    # Groups by (task, seed): A = (0, 7) with outcomes 1, 0, 1, 1; B = (1, 7) all failures (same
+    # seed, another task); C = (0, 9) with 1, 0. Episodes interleaved.
+    task = [0, 1, 0, 0, 1, 0, 0, 0]
+    seed = [7, 7, 9, 7, 7, 7, 9, 7]
+    success = [1, 0, 1, 0, 0, 1, 0, 1]
+    _, batch = make_batch(list(range(8)), success=success, task=task, seed=seed)
+    adv = group_advantages(batch)
+    # A: mean 0.75, sample std 0.5; C: mean 0.5, sample std sqrt(0.5); B: zero std -> 0.
+    a_hi, a_lo, c = 0.25 / 0.5, -0.75 / 0.5, 0.5 / 0.5**0.5
+    torch.testing.assert_close(adv, torch.tensor([a_hi, 0.0, c, a_lo, 0.0, a_hi, -c, a_hi]), atol=1e-5, rtol=1e-5)
+
+
+def test_group_advantages_need_groups():
+    _, batch = make_batch([0, 1], success=[1, 0])  # unseeded resets: no groups
+    with pytest.raises(ValueError, match="group_size"):
+        group_advantages(batch)
+    _, batch = make_batch([0, 1], success=[1, 0], seed=[3, 4])
+    with pytest.raises(ValueError, match="single episode"):
+        group_advantages(batch)
+
+
+@pytest.mark.parametrize("record_all", [False, True])
+def test_call_log_prob_sums_its_steps_and_the_first_ratio_is_one(record_all):
+    policy, batch = make_batch(list(range(64)), success=[i % 2 for i in range(64)], record_all=record_all)
+    rows = call_step_rows(batch)
+    assert rows.shape == (64, 4 if record_all else 1)
+    assert torch.all(batch.call[rows] == torch.arange(64)[:, None])
+    per_call = steps_log_prob(batch, rows.flatten(), batch.v_old[rows.flatten()], 0.3).view_as(rows).sum(1)
+    direct = sum(sde_step_log_prob(batch.x_next[rows[:, k]], batch.x_t[rows[:, k]], batch.v_old[rows[:, k]],
+                                   batch.t[rows[:, k]], batch.dt[rows[:, k]], 0.3) for k in range(rows.shape[1]))
+    torch.testing.assert_close(per_call, direct)
+    # The acting policy is the policy: before any step the ratio is 1, nothing is clipped.
+    cfg = PPOConfig(noise_level=0.3, update_epochs=1, minibatch_size=64, lr=1e-12)
+    optimizer = torch.optim.SGD(policy.parameters(), lr=0.0)
+    metrics = policy_gradient_update(policy, optimizer, batch, torch.randn(64), cfg)
+    assert metrics["losses/approx_kl"] < 1e-8 and metrics["losses/clipfrac"] == 0.0
+
+
+def test_an_update_raises_the_likelihood_of_positive_advantages():
+    policy, batch = make_batch(list(range(256)), success=[i % 2 for i in range(256)], record_all=True)
+    advantages = torch.where(batch.episode_success, 1.0, -1.0)
+    rows = call_step_rows(batch)
+
+    def log_probs():
+        with torch.no_grad():
+            v = policy.velocity(policy.processor(batch.steps_obs(rows.flatten())), batch.x_t[rows.flatten()],
+                                batch.t[rows.flatten()])
+            return steps_log_prob(batch, rows.flatten(), v, 0.3).view_as(rows).sum(1)
+
+    before = log_probs()
+    cfg = PPOConfig(noise_level=0.3, lr=3e-4, update_epochs=2, minibatch_size=64)
+    metrics = policy_gradient_update(policy, torch.optim.Adam(policy.parameters(), lr=3e-4), batch, advantages, cfg)
+    change = log_probs() - before
+    assert change[batch.episode_success].mean() > 0 > change[~batch.episode_success].mean()
+    assert metrics["losses/update_steps"] == 8 and metrics["losses/approx_kl"] > 0
+
+
+def test_target_kl_stops_the_updates():
+    policy, batch = make_batch(list(range(256)), success=[i % 2 for i in range(256)])
+    cfg = PPOConfig(noise_level=0.3, lr=1e-2, update_epochs=8, minibatch_size=32, target_kl=1e-3)
+    metrics = policy_gradient_update(policy, torch.optim.Adam(policy.parameters(), lr=1e-2), batch,
+                                     torch.where(batch.episode_success, 1.0, -1.0), cfg)
+    assert metrics["losses/kl_stopped"] == 1.0 and metrics["losses/update_steps"] < 64
+
+
+def test_ppo_state_round_trips_through_a_checkpoint_with_its_critic():
+    policy, batch = make_batch([0, 1, 0, 1, 0, 2], success=[True, False, True])
+    cfg = PPOConfig(noise_level=0.3, minibatch_size=4)
+    algo = make_algorithm(cfg, policy, iterations=3, generator=torch.Generator().manual_seed(0))
+    assert "critic" not in algo.state_dict()
+    metrics = algo.update(batch)
+    for name in ("losses/policy_loss", "losses/value_loss", "losses/approx_kl", "losses/clipfrac",
+                 "losses/explained_variance", "charts/advantage_std"):
+        assert name in metrics
+    skeleton, tensors = flatten_state(algo.state_dict())
+    fresh = make_algorithm(cfg, policy, iterations=3, generator=torch.Generator())
+    fresh.load_state_dict(unflatten_state(skeleton, tensors))
+    features = torch.randn(5, 3)
+    torch.testing.assert_close(fresh.critic(features), algo.critic(features))
+    assert fresh.critic_optimizer.state_dict()["state"].keys() == algo.critic_optimizer.state_dict()["state"].keys()
+
+
+def test_rollout_specs_and_config_checks():
+    assert PPOConfig(sde_steps="one").rollout_spec().record_steps == "one"
+    spec = make_algorithm(GRPOConfig(group_size=4), make_batch([0], [True])[0], 1, torch.Generator()).rollout
+    assert (spec.group_size, spec.stochastic_steps, spec.record_steps) == (4, "all", "all")
+    with pytest.raises(ValueError, match="algo.noise_level"):
+        PPOConfig(noise_level=0.0)  # no noise, no likelihood: the ODE ablation is π-StepNFT's
+    with pytest.raises(ValueError, match="algo.group_size"):
+        GRPOConfig(group_size=1)
+    with pytest.raises(ValueError, match="algo.gae_lambda"):
+        PPOConfig(gae_lambda=1.5)
+
+
+def test_minibatches_without_advantage_are_skipped():
+    """GRPO's uniform groups give 0 advantage: no step is taken (Adam's momentum would still move
+    the policy), and the metric names stay."""
+    policy, batch = make_batch(list(range(64)), success=[i % 2 for i in range(64)])
+    before = [p.detach().clone() for p in policy.parameters()]
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-2)
+    policy_gradient_update(policy, optimizer, batch, torch.ones(64), PPOConfig(minibatch_size=32, update_epochs=1))
+    moved = [p.detach().clone() for p in policy.parameters()]
+    metrics = policy_gradient_update(policy, optimizer, batch, torch.zeros(64), PPOConfig(minibatch_size=32))
+    assert metrics["losses/skipped_empty"] == 4 and metrics["losses/update_steps"] == 0
+    assert metrics["losses/approx_kl"] != metrics["losses/approx_kl"]  # NaN: nothing measured
+    assert all(torch.equal(a, b) for a, b in zip(moved, policy.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(before, moved))
