@@ -8,7 +8,7 @@ recorded), with a freshly initialised policy (its episodes run to the step cap, 
 measurement costs the same). The learner is idle while rollouts are timed. Prints a table and
 writes scaling.json, scaling.md and scaling.png to --out.
 
-    .venv/bin/python benchmarks/scaling.py            # the measurement: a quiet machine with >= 3 cores, ~5 min
+    .venv/bin/python benchmarks/scaling.py            # the measurement: a quiet machine with >= 3 cores, a few minutes
     .venv/bin/python benchmarks/scaling.py --quick    # checks that it runs (tiny sizes: numbers mean nothing)
 """
 
