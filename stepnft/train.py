@@ -71,9 +71,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             before = evaluate(policy, cfg.eval.episodes, cfg.eval.seed)
             log("before RL:\n" + format_table(None, before))
             allocator.success[:] = [before["tasks"][t]["success"] for t in tasks]
-            best = {"iteration": 0, "validation": None}
-            if cfg.eval.every:
-                best["validation"] = evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed)["average"]
+            validation = evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed) if cfg.eval.every else None
+            best = {"iteration": 0, "validation": validation["average"] if validation else None}
             policy.save_pretrained(run_dir / "best_policy")
         if distributed.world_size() > 1:
             distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
@@ -81,7 +80,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         stack.callback(logger.close)
         if not resume:
             logger.log({"iteration": 0, "env_steps": 0, **_eval_record(before, "test"),
-                        "charts/validation_success_rate": best["validation"]})
+                        **(_eval_record(validation, "validation") if validation else {})})
 
         t_start, iteration = time.perf_counter(), start
         out_of_budget = lambda: cfg.env_step_budget is not None and env_steps >= cfg.env_step_budget  # noqa: E731
