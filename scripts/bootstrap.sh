@@ -14,12 +14,20 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
 fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-stamp=.venv/.stepnft-installed
+# Extras to install, comma-separated (scripts/run-tests.sh adds ray, for the Ray tests).
+EXTRAS=${STEPNFT_EXTRAS:-test,video}
+stamp=.venv/.stepnft-installed  # "<hash of pyproject + constraints> <extras installed>"
 want=$(cat pyproject.toml constraints.txt | sha1sum | cut -d' ' -f1)
-if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+have=$(cat "$stamp" 2>/dev/null || true)
+installed=$([ "${have%% *}" = "$want" ] && echo "${have#* }" || true)
+extras=$installed
+for extra in ${EXTRAS//,/ }; do
+  case ",$installed," in *",$extra,"*) ;; *) extras=${extras:+$extras,}$extra ;; esac
+done
+if [ "$extras" != "$installed" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   # torch first, pinned: the CPU wheel. Anything resolving torch later must not pull a CUDA build.
   .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -c constraints.txt -e ".[test,video]"
-  echo "$want" > "$stamp"
+  .venv/bin/python -m pip install -q -c constraints.txt -e ".[$extras]"
+  echo "$want $extras" > "$stamp"
 fi
