@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
 # Set up a fresh machine for stepnft: system libraries for offscreen rendering (when root),
 # the virtual environment .venv at the repo root (if missing), and stepnft with its extras.
-# Re-running is cheap: it reinstalls only when pyproject.toml, constraints.txt or the extras changed.
-# Optional extras: --libero (LIBERO, docs/libero.md; ~700 MB), or STEPNFT_EXTRAS=libero.
+# Re-running is cheap: it reinstalls only when pyproject.toml or constraints.txt changed.
+# --libero adds the LIBERO extra (docs/libero.md; 622 MB of assets), as STEPNFT_EXTRAS=...,libero does.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
-extras="test,video${STEPNFT_EXTRAS:+,$STEPNFT_EXTRAS}"
+EXTRAS=${STEPNFT_EXTRAS:-test,video}
 for arg in "$@"; do
   case "$arg" in
-    --libero) extras="$extras,libero" ;;
+    --libero) EXTRAS="$EXTRAS,libero" ;;
     *) echo "bootstrap.sh: unknown option $arg (known: --libero)" >&2; exit 2 ;;
   esac
 done
@@ -22,12 +22,19 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
 fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-stamp=.venv/.stepnft-installed
-want=$( (cat pyproject.toml constraints.txt; echo "$extras") | sha1sum | cut -d' ' -f1)
-if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+# Extras to install, comma-separated (scripts/run-tests.sh adds ray and libero, for their tests).
+stamp=.venv/.stepnft-installed  # "<hash of pyproject + constraints> <extras installed>"
+want=$(cat pyproject.toml constraints.txt | sha1sum | cut -d' ' -f1)
+have=$(cat "$stamp" 2>/dev/null || true)
+installed=$([ "${have%% *}" = "$want" ] && echo "${have#* }" || true)
+extras=$installed
+for extra in ${EXTRAS//,/ }; do
+  case ",$installed," in *",$extra,"*) ;; *) extras=${extras:+$extras,}$extra ;; esac
+done
+if [ "$extras" != "$installed" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   # torch first, pinned: the CPU wheel. Anything resolving torch later must not pull a CUDA build.
   .venv/bin/python -m pip install -q "torch==2.13.0"
   .venv/bin/python -m pip install -q -c constraints.txt -e ".[$extras]"
-  echo "$want" > "$stamp"
+  echo "$want $extras" > "$stamp"
 fi

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Set up (if needed) and run the test suite. Extra arguments go to pytest.
+# Set up (if needed) and run the test suite, with the ray and libero extras so the Ray and
+# LIBERO tests run (without them they skip). Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/bootstrap.sh
+STEPNFT_EXTRAS=test,video,ray,libero bash scripts/bootstrap.sh
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 exec .venv/bin/python -m pytest -q "$@"

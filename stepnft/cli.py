@@ -27,7 +27,7 @@ COMMANDS = {
     "compare": "algorithms and ablations (PPO, GRPO, ...) from the same SFT start on one env-step budget",
 }
 
-CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval")
+CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval", "ray")
 """The sections of ``TrainConfig`` (kept here so ``stepnft --help`` needs no heavy import)."""
 
 LEGACY_FLAGS = {
@@ -121,7 +121,7 @@ def _describe(cls) -> str:
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
                 " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
-                " the last checkpoint of a run; it takes no other flags).")
+                " the last checkpoint of a run; it takes no other flags than --ray.*).")
     return doc
 
 
@@ -157,14 +157,20 @@ def _train_config_from_argv(argv: list[str], prog: str, allow_resume: bool, base
     known, rest = pre.parse_known_args(argv)
     resume = getattr(known, "resume", None)
     if resume and not any(a in ("-h", "--help") for a in rest):
-        if rest or known.config:
+        if (rest and not rest[0].startswith("--ray.")) or known.config:
             extra = " ".join(rest + (["--config", known.config] if known.config else []))
-            raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags; drop: {extra}")
+            raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags "
+                             f"than --ray.*; drop: {extra}")
         cfg_path = Path(resume) / "config.yaml"
         if not cfg_path.is_file():
             raise UsageError(f"cannot resume {resume}: no config.yaml there (is it a stepnft run directory?)")
         cfg = load_config(cfg_path)
         cfg.run_dir = resume  # the folder may have been moved or copied since it was written
+        if rest:  # --ray.* flags say where rollouts run, not what they are: a run may resume elsewhere
+            parsed = _parse(TrainConfig, rest, cfg, prog)
+            if dataclasses.replace(parsed, ray=cfg.ray) != cfg:
+                raise UsageError(f"--resume takes no other flags than --ray.*; drop: {' '.join(rest)}")
+            cfg = parsed
         return cfg, True
     base = load_config(known.config) if known.config else (base or TrainConfig())
     name = _algo_name(rest)

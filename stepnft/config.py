@@ -10,6 +10,7 @@ is built, so YAML files and flags get the same checks.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import types
 import typing
 from dataclasses import dataclass, field
@@ -149,6 +150,35 @@ class EvalConfig:
 
 
 @dataclass
+class RayConfig:
+    """Rollouts on Ray actors (``pip install "stepnft[ray]"``): each worker owns a share of the
+    sub-envs and a copy of the acting policy; the same episodes as one process (docs/scaling.md)."""
+
+    workers: int = 0
+    """Ray rollout workers (0: collect in this process, the default); sub-env i plays on worker
+    i mod N, and evaluation runs on them too."""
+    address: str | None = None
+    """Ray cluster to join (``auto``, ``HOST:6379`` or ``ray://HOST:10001``); None: start a
+    local Ray with one CPU per worker."""
+    timeout_s: float = 600.0
+    """Seconds a worker may take to start or to play one wave before it counts as hung: it is
+    killed and restarted, its episodes of that wave dropped."""
+    max_restarts: int = 3
+    """Times each worker may be lost (crash, timeout, node loss) and restarted before the run
+    stops with an error (then `stepnft train --resume RUN_DIR`)."""
+
+    def __post_init__(self) -> None:
+        if self.workers < 0 or not self.timeout_s > 0 or self.max_restarts < 0:
+            raise ValueError(f"ray.workers and ray.max_restarts must be >= 0 and ray.timeout_s > 0, got "
+                             f"{self.workers}, {self.max_restarts}, {self.timeout_s}")
+        if self.address is not None and self.workers == 0:
+            raise ValueError("ray.address needs rollout workers on the cluster: set --ray.workers N")
+        if self.workers > 0 and importlib.util.find_spec("ray") is None:
+            raise ValueError(f'ray.workers={self.workers} needs Ray, which is not installed: pip install "stepnft[ray]" '
+                             "(or --ray.workers 0)")
+
+
+@dataclass
 class TrainConfig:
     """A run: demonstrations -> few-shot SFT -> online RL (π-StepNFT by default) -> evaluation."""
 
@@ -181,6 +211,7 @@ class TrainConfig:
     sft: SFTConfig = field(default_factory=SFTConfig)
     algo: AlgoConfig = field(default_factory=StepNFTConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    ray: RayConfig = field(default_factory=RayConfig)
 
     def __post_init__(self) -> None:
         checks = {

@@ -36,15 +36,17 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
                     label: Callable[[int], str] | None = None) -> dict:
     """Success per task over ``episodes`` episodes each, ODE sampling.
 
-    ``venv`` is a chunk vector env with the same number of sub-envs per task; each wave plays
-    that many new episodes of every task. ``policy.processor`` must be bound to
+    ``venv`` is a chunk vector env with the same number of sub-envs per task, or a collector
+    that plays waves on one (e.g. ``RayCollector``: the same episodes, on its workers); each
+    wave plays that many new episodes of every task. ``policy.processor`` must be bound to
     ``venv.instruction_variants`` (or ``venv.instructions``). Returns ``{"tasks": {task: {...}},
     "average": rate, "episodes": per task, "env_steps": total}``; with ``label`` (the initial
     state seed -> a group name, e.g. a suite's perturbation) also ``"breakdown": {group: {...}}``
     over every task's episodes.
     """
     policy.eval()
-    collector = Collector(venv)
+    collector = venv if isinstance(venv, Collector) else Collector(venv)
+    venv = collector.venv
     task_ids = np.asarray(venv.task_ids)
     n_tasks = len(venv.tasks)
     per_task = len(task_ids) // n_tasks

@@ -22,6 +22,7 @@ from typing import Callable
 import torch
 from tqdm.auto import tqdm
 
+from stepnft import distributed
 from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
@@ -37,8 +38,12 @@ from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, p
 
 
 def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
-    """Run (or resume) a training run; returns the summary also written to ``summary.json``."""
+    """Run (or resume) a training run; returns the summary also written to ``summary.json``.
+    Under ``torchrun`` rank 0 runs it and the other processes share its updates (``_follow``)."""
+    if distributed.init() and distributed.rank() > 0:
+        return _follow(cfg)
     with ExitStack() as stack:
+        stack.callback(distributed.close)
         run_dir, sim, tasks, collector = _start_run(cfg, stack, "train", resume)
         evaluate = _evaluator(collector)
         if resume:
@@ -70,6 +75,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             validation = evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed) if cfg.eval.every else None
             best = {"iteration": 0, "validation": validation["average"] if validation else None}
             policy.save_pretrained(run_dir / "best_policy")
+        if distributed.world_size() > 1:
+            distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
         logger = MetricLogger(run_dir, resume_iteration=start if resume else None)
         stack.callback(logger.close)
         if not resume:
@@ -87,6 +94,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             task_episodes = allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
             batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
             env_steps += batch.env_steps
+            distributed.broadcast((batch, it, torch.get_rng_state()))
             t1 = time.perf_counter()
             metrics = algo.update(batch)
             if non_finite(policy.state_dict()):  # the update guard should make this impossible
@@ -98,7 +106,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             iteration = it + 1
             record = {"iteration": iteration, "env_steps": env_steps, **_rollout_record(batch, tasks),
                       "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
-                      "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics}
+                      "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **collector.pop_metrics()}
             last = iteration == cfg.iterations or out_of_budget()
             if cfg.eval.every and iteration % cfg.eval.every == 0 and not last:
                 current = algo.eval_policy()
@@ -118,6 +126,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             if last:
                 break
         bar.close()
+        distributed.broadcast(None)  # the other processes are done
 
         final = algo.eval_policy()
         after = evaluate(final, cfg.eval.episodes, cfg.eval.seed)
@@ -154,6 +163,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
 
 def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
     """``stepnft sft``: few-shot SFT on the demonstrations, saved to ``RUN/policy``, then evaluated."""
+    if distributed.launched():
+        raise ValueError("stepnft sft runs in one process: start it without torchrun")
     with ExitStack() as stack:
         run_dir, sim, tasks, collector = _start_run(cfg, stack, "sft")
         mark_run(run_dir, "sft")
@@ -197,10 +208,33 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
         check_free(run_dir)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
-    venv = make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed)
-    collector = Collector(venv, seed=cfg.seed)
+    if cfg.ray.workers > 0:
+        from stepnft.rollout.ray_collector import RayCollector
+
+        collector = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, cfg.ray, num_threads=cfg.num_threads)
+    else:
+        collector = Collector(make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed), seed=cfg.seed)
     stack.callback(collector.close)
     return run_dir, sim, tasks, collector
+
+
+def _follow(cfg: TrainConfig) -> dict:
+    """A process of rank > 0 under ``torchrun``: takes rank 0's policy and algorithm state,
+    then updates on every batch rank 0 sends, in step with it (``stepnft.distributed``)."""
+    try:
+        torch.set_num_threads(cfg.num_threads)
+        policy, state, generator_state = distributed.broadcast()
+        algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator())
+        algo.load_state_dict(state)
+        algo.generator.set_state(generator_state)
+        while (message := distributed.broadcast()) is not None:
+            batch, it, torch_rng = message
+            torch.set_rng_state(torch_rng)  # what the update draws (e.g. PPO's new critic) is rank 0's
+            algo.update(batch)
+            algo.end_iteration(it)
+    finally:
+        distributed.close()
+    return {}
 
 
 def _init_policy(cfg: TrainConfig) -> Policy:
@@ -220,7 +254,7 @@ def _evaluator(collector: Collector):
             def progress(done, total):
                 bar.total, bar.n = total, done
                 bar.refresh()
-            return evaluate_policy(policy, collector.venv, episodes, seed, progress=progress)
+            return evaluate_policy(policy, collector, episodes, seed, progress=progress)
     return evaluate
 
 

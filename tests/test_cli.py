@@ -199,7 +199,7 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     assert "holds an SFT run, not a training run" in line
 
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
-    assert "takes no other flags; drop: --iterations 9" in line
+    assert "takes no other flags than --ray.*; drop: --iterations 9" in line
 
 
 def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):
@@ -337,3 +337,24 @@ def test_a_full_disk_at_checkpoint_time_is_one_line_and_keeps_the_last_checkpoin
         save_checkpoint(run, 3, tiny_policy(), {"env_steps": 1})
     assert (run / "checkpoints" / "LATEST").read_text() == before
     assert not list((run / "checkpoints").glob(".tmp-*"))
+
+
+def test_ray_workers_without_ray_installed_is_one_line(capsys, monkeypatch, tmp_path):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else find_spec(name, *a))
+    line = assert_one_line_error(*run_cli(capsys, "train", "--run-dir", tmp_path / "run", "--ray.workers", 2)[::2],
+                                 "train")
+    assert 'needs Ray, which is not installed: pip install "stepnft[ray]"' in line
+    assert not (tmp_path / "run").exists()
+    code, out, _ = run_cli(capsys, "train", "--help")  # the options are listed all the same
+    assert code == 0 and "--ray.workers" in out and "--ray.address" in out and "--ray.max-restarts" in out
+
+
+def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
+    cfg, resume = _config_from_argv(["--resume", str(workspace / "run"), "--ray.timeout-s", "30"], "stepnft train", True)
+    assert resume and cfg.ray.timeout_s == 30 and cfg.iterations == 2
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", 30,
+                                          "--seed", 3)[::2], "train")
+    assert "takes no other flags than --ray.*" in line

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
 from stepnft.batch import Batch
+from stepnft.distributed import data_parallel, shard_forward
 from stepnft.losses import clipped_policy_loss
 from stepnft.policies.base import Policy
 from stepnft.sampling import sde_step_log_prob
@@ -135,8 +136,10 @@ def policy_gradient_update(
     ``advantages`` ``[C]`` per call. ``log π_old`` comes from the recorded ``v_old`` (the acting
     policy is the policy itself, so no extra forward pass). ``extra_step(calls)`` runs after each
     policy step on the same calls (PPO's critic). Steps with a non-finite loss or gradient are
-    skipped (``guard``). Returns metrics averaged over minibatches."""
+    skipped (``guard``). Returns metrics averaged over minibatches. Under ``torchrun`` the
+    processes share each minibatch (``stepnft.distributed``)."""
     guard = guard or NonFiniteGuard(cfg)
+    learner = data_parallel(policy)
     rows = call_step_rows(batch)
     per_call = rows.shape[1]
     with torch.no_grad():
@@ -151,7 +154,8 @@ def policy_gradient_update(
                 skipped += 1  # nothing to learn (e.g. GRPO's uniform groups); Adam would still move
                 continue
             step_rows = rows[calls].flatten()
-            v = policy.velocity(policy.processor(batch.steps_obs(step_rows)), batch.x_t[step_rows], batch.t[step_rows])
+            v = shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
+                                                   batch.t[part]), step_rows)
             log_prob = steps_log_prob(batch, step_rows, v, cfg.noise_level).view(len(calls), per_call).sum(dim=1)
             loss, metrics = clipped_policy_loss(log_prob, old_log_prob[calls], advantages[calls], cfg.clip_coef)
             for k, val in metrics.items():

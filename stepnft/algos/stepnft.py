@@ -16,6 +16,7 @@ from torch import Tensor
 
 from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
 from stepnft.batch import Batch
+from stepnft.distributed import data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
@@ -177,8 +178,10 @@ def stepnft_update(
     """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
     steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary). Steps
     with a non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over
-    minibatch steps, under stable names."""
+    minibatch steps, under stable names. Under ``torchrun`` the processes share each minibatch
+    (``stepnft.distributed``): the same steps as one process."""
     guard = guard or NonFiniteGuard(cfg)
+    learner = data_parallel(policy)
     y = batch.step_success.float() * 2 - 1
     weights = sample_weights(batch, y, cfg)
     sums: dict[str, float] = defaultdict(float)
@@ -190,7 +193,8 @@ def stepnft_update(
             if w is not None and not bool(w.sum() > 0):
                 skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
                 continue
-            v = policy.velocity(policy.processor(batch.steps_obs(idx)), batch.x_t[idx], batch.t[idx])
+            v = shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
+                                                   batch.t[part]), idx)
             loss, metrics = stepnft_loss(
                 v, batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], cfg.noise_level,
                 y[idx], beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,

@@ -120,26 +120,35 @@ class Simulator(ABC):
                 raise ValueError(f"unknown {self.label} task {task!r}; valid names: {', '.join(valid)}")
         return tasks
 
-    def make_vec_env(self, tasks: str | Sequence[str], envs_per_task: int = 1, n_exec: int = 4,
-                     max_episode_steps: int = 200, terminate_on_success: bool = True, seed: int = 0,
-                     num_workers: int = 0, **options: Any) -> "ChunkVecEnv":
-        """``len(tasks) * envs_per_task`` chunk envs; sub-env ``i`` runs ``tasks[i // envs_per_task]``.
-        ``num_workers`` 0 steps them in this process, >= 1 in that many worker processes (which
-        then also render in parallel). ``options`` go to every :meth:`make_env`."""
+    def vec_env_layout(self, tasks: str | Sequence[str], envs_per_task: int = 1, perturbations=None) -> dict[str, Any]:
+        """The layout of :meth:`make_vec_env`'s sub-envs without building them: the checked
+        ``tasks``, their ``instructions``, ``instruction_variants`` and ``task_ids`` [N] (sub-env
+        ``i`` runs ``tasks[i // envs_per_task]``)."""
         tasks = self.validate_tasks(tasks)
         if len(set(tasks)) != len(tasks):
             raise ValueError(f"each task may appear once, got {', '.join(tasks)}")
         if envs_per_task < 1:
             raise ValueError(f"envs_per_task must be >= 1, got {envs_per_task}")
-        task_ids = np.repeat(np.arange(len(tasks), dtype=np.int64), envs_per_task)
+        variants = [self.instruction_variants(t, perturbations) for t in tasks]
+        return dict(tasks=tasks, instructions=[v[0] for v in variants], instruction_variants=variants,
+                    task_ids=np.repeat(np.arange(len(tasks), dtype=np.int64), envs_per_task))
+
+    def make_vec_env(self, tasks: str | Sequence[str], envs_per_task: int = 1, n_exec: int = 4,
+                     max_episode_steps: int = 200, terminate_on_success: bool = True, seed: int = 0,
+                     num_workers: int = 0, sub_envs: Sequence[int] | None = None, **options: Any) -> "ChunkVecEnv":
+        """``len(tasks) * envs_per_task`` chunk envs; sub-env ``i`` runs ``tasks[i // envs_per_task]``.
+        ``num_workers`` 0 steps them in this process, >= 1 in that many worker processes (which
+        then also render in parallel). ``sub_envs`` builds only those sub-envs (each with the
+        task and seed it has in the whole vector env, the task indices staying global): a remote
+        worker's share. ``options`` go to every :meth:`make_env`."""
+        layout = self.vec_env_layout(tasks, envs_per_task, options.get("perturbations"))
+        tasks, task_ids = layout["tasks"], layout["task_ids"]
         # Distinct, well-mixed sub-env seeds, so runs with nearby `seed`s share no streams.
         env_seeds = np.random.SeedSequence(seed).generate_state(len(task_ids))
-        env_fns = [partial(self.make_env, tasks[k], n_exec=n_exec, max_episode_steps=max_episode_steps,
-                           terminate_on_success=terminate_on_success, seed=int(s), **options)
-                   for k, s in zip(task_ids, env_seeds)]
-        variants = [self.instruction_variants(t, options.get("perturbations")) for t in tasks]
-        layout = dict(tasks=tasks, instructions=[v[0] for v in variants], instruction_variants=variants,
-                      task_ids=task_ids)
+        keep = np.arange(len(task_ids)) if sub_envs is None else np.asarray(sub_envs, dtype=np.int64)
+        env_fns = [partial(self.make_env, tasks[task_ids[i]], n_exec=n_exec, max_episode_steps=max_episode_steps,
+                           terminate_on_success=terminate_on_success, seed=int(env_seeds[i]), **options) for i in keep]
+        layout["task_ids"] = task_ids[keep]
         if num_workers > 0:
             context = None
             if options.get("cameras"):

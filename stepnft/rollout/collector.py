@@ -84,6 +84,15 @@ class Collector:
                     seeds[i] = seed
         return seeds
 
+    def _wave_plan(self, seeds: list[int] | None, record: RolloutSpec | None,
+                   active: np.ndarray | None) -> tuple[list[int] | None, np.ndarray]:
+        """A wave's reset seeds (drawn here for groups when ``record`` asks for them and none
+        are given) and its active sub-envs (default: all)."""
+        active = np.ones(self.num_envs, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        if record is not None and record.group_size > 1 and seeds is None:
+            seeds = self._group_seeds(active, record.group_size)
+        return seeds, active
+
     def play_wave(self, policy: Policy, noise_level: float, generators: list[torch.Generator],
                   seeds: list[int] | None = None, record: RolloutSpec | None = None,
                   active: np.ndarray | None = None) -> Batch:
@@ -94,10 +103,8 @@ class Collector:
         venv, n = self.venv, self.venv.num_envs
         horizon, action_dim = policy.chunk_shape
         n_exec = policy.config.n_exec
-        if record is not None and record.group_size > 1 and seeds is None:
-            seeds = self._group_seeds(np.ones(n, dtype=bool) if active is None else active, record.group_size)
-        if active is None or active.all():
-            active = np.ones(n, dtype=bool)
+        seeds, active = self._wave_plan(seeds, record, active)
+        if active.all():
             raw, _ = venv.reset(seed=seeds)
         else:
             venv.reset(seed=seeds, options={"reset_mask": active.copy()})
@@ -166,6 +173,11 @@ class Collector:
         self.generator.set_state(state["generator"])
         for g, g_state in zip(self.env_generators, state["env_generators"], strict=True):
             g.set_state(g_state)
+
+    def pop_metrics(self) -> dict[str, float]:
+        """Metrics of the collector itself since the last call (a remote collector's weight
+        pushes and lost episodes); none here."""
+        return {}
 
     def close(self) -> None:
         self.venv.close()

@@ -1,0 +1,448 @@
+"""Rollouts on Ray: a :class:`~stepnft.rollout.collector.Collector` whose waves are played by
+Ray actors, each owning a share of the sub-envs and a copy of the acting policy.
+
+The driver keeps everything that decides *which* episodes are played (waves, per-task
+allocation, group seeds: the local collector's code) and sends each worker its part of a wave.
+Sub-env ``i`` is built with the task and seed it has in ``make_vec_env`` and samples its noise
+from its own generator, whose state travels with the wave and comes back after it; the parts
+are merged in the order one process would have written them (:func:`merge_wave`). So for the
+same seeds the batch is the local collector's (a policy forward on a smaller batch may differ
+in the last float bits). Evaluation (:func:`stepnft.evaluate.evaluate_policy`) plays its waves
+through the same path, on the workers.
+
+Weights go with the first wave after they changed: a whole policy the first time a worker sees
+it, afterwards only the tensors written since. Changes are seen through torch's version
+counters, which every in-place write bumps (optimizer steps, the EMA update,
+``load_state_dict``); a write through ``.data`` does not and would go unnoticed.
+
+Failures: a worker that dies (process killed, node lost, out of memory) or does not answer a
+wave within ``ray.timeout_s`` (then it is killed) is restarted by Ray. Its episodes of that
+wave are dropped and counted (``charts/dropped_episodes``), its sub-envs resume their RNG
+streams from before the lost wave, and training goes on with the other workers' episodes (a
+wave that lost every episode is played again; with groups, incomplete groups are dropped).
+Evaluation waves (nothing recorded: fixed initial states) play the lost part again instead. A
+worker lost more than ``ray.max_restarts`` times ends the run with an error; ``stepnft train
+--resume`` continues it from its last checkpoint.
+
+Ray is imported only when a :class:`RayCollector` is built (``pip install "stepnft[ray]"``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import sys
+import time
+import weakref
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from stepnft.algos.base import RolloutSpec
+from stepnft.batch import CALL_KEYS, EPISODE_KEYS, STEP_KEYS, Batch
+from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs.sharded import shard_ranges
+from stepnft.policies.base import Policy
+from stepnft.rollout.collector import Collector
+
+MAX_POLICIES = 3
+"""Policies a worker keeps (e.g. π-StepNFT's EMA rollout policy and the evaluated one)."""
+
+
+def import_ray():
+    """The ``ray`` module, or an ImportError saying how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError('Ray rollout workers need Ray: pip install "stepnft[ray]" (or set --ray.workers 0)') from err
+    return ray
+
+
+def _named_tensors(policy: Policy) -> dict[str, torch.Tensor]:
+    return dict(policy.named_parameters()) | dict(policy.named_buffers())
+
+
+def _fingerprint(policy: Policy) -> tuple[str, dict[str, tuple[int, int]]]:
+    """What a worker's copy must match: a key of the policy's class, tensor names and input
+    processor (a change means a whole new copy), and each tensor's (storage, version)."""
+    tensors = _named_tensors(policy)
+    structure = hashlib.sha1(pickle.dumps((type(policy).__qualname__, sorted(tensors), policy.processor))).hexdigest()
+    return structure, {name: (t.data_ptr(), t._version) for name, t in tensors.items()}
+
+
+class RolloutWorker:
+    """One Ray actor: sub-envs ``sub_envs`` of the run's vector env (the same tasks and seeds),
+    stepped in this process (or ``env.num_workers`` processes), and copies of the policies
+    that act on them, by slot."""
+
+    def __init__(self, env_cfg, n_exec: int, seed: int, sub_envs: list[int], num_threads: int = 1):
+        torch.set_num_threads(num_threads)
+        self.collector = Collector(make_vec_env(env_cfg, n_exec, seed, sub_envs=sub_envs))
+        self.policies: OrderedDict[int, Policy] = OrderedDict()
+        # Ray may restart a dead worker before the driver notices: a new incarnation has fresh
+        # envs and no policies, so it plays only for a driver that knows it was restarted.
+        self.incarnation = os.urandom(8).hex()
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def hello(self) -> tuple[str, list[dict]]:
+        """This incarnation and its sub-envs' RNG states."""
+        return self.incarnation, self.collector.venv.rng_state()
+
+    def sync(self, incarnation, slot, policy, weights, training) -> float | None:
+        """:meth:`_sync` alone; None, doing nothing, when the driver expects another ``incarnation``."""
+        if incarnation is not None and incarnation != self.incarnation:
+            return None
+        return self._sync(slot, policy, weights, training)
+
+    def _sync(self, slot: int, policy: Policy | None, weights: dict[str, torch.Tensor] | None, training: bool) -> float:
+        """Take a whole ``policy`` into ``slot`` or copy changed ``weights`` into it; returns seconds."""
+        start = time.perf_counter()
+        if policy is not None:
+            self.policies[slot] = policy
+        self.policies.move_to_end(slot)  # the driver mirrors this eviction order (RayCollector._hold)
+        while len(self.policies) > MAX_POLICIES:
+            self.policies.popitem(last=False)
+        if weights:
+            tensors = _named_tensors(self.policies[slot])
+            with torch.no_grad():
+                for name, value in weights.items():
+                    tensors[name].copy_(value)
+        self.policies[slot].train(training)
+        return time.perf_counter() - start
+
+    def play(self, incarnation, slot, policy, weights, training, noise_level, generator_states, seeds, record, active,
+             env_rng):
+        """This worker's part of a wave (see :meth:`Collector.play_wave`), after syncing the
+        policy and, for a restarted worker, restoring its sub-envs' RNG states. Returns this
+        incarnation, the batch, the sub-envs' RNG states, the generators' states and the sync's
+        seconds; or None, playing nothing, when the driver expects another ``incarnation``."""
+        if incarnation is not None and incarnation != self.incarnation:
+            return None
+        sync_s = self._sync(slot, policy, weights, training)
+        if env_rng is not None:
+            self.collector.venv.set_rng_state(env_rng)
+        generators = []
+        for state in generator_states:
+            generators.append(torch.Generator())
+            generators[-1].set_state(state)
+        batch = self.collector.play_wave(self.policies[slot], noise_level, generators, seeds=seeds, record=record,
+                                         active=active)
+        return self.incarnation, batch, self.collector.venv.rng_state(), [g.get_state() for g in generators], sync_s
+
+
+class RemoteEnvs:
+    """The sub-envs as the driver sees them (the workers own them): the layout every
+    collector reads (``tasks``, ``instructions``, ``instruction_variants``, ``task_ids``) and each sub-env's RNG state
+    after its last wave (checkpointed; restored into a restarted worker)."""
+
+    def __init__(self, tasks: list[str], instructions: list[str], instruction_variants: list[list[str]],
+                 task_ids: np.ndarray):
+        self.tasks, self.instructions, self.task_ids = list(tasks), list(instructions), np.asarray(task_ids)
+        self.instruction_variants = [list(v) for v in instruction_variants]
+        self.task_names = [self.tasks[i] for i in self.task_ids]
+        self.rng: list[dict | None] = [None] * len(self.task_ids)
+
+    @property
+    def num_envs(self) -> int:
+        return len(self.task_ids)
+
+    def rng_state(self) -> list[dict]:
+        return list(self.rng)
+
+    def set_rng_state(self, states: list[dict]) -> None:
+        if len(states) != self.num_envs:
+            raise ValueError(f"{len(states)} sub-env RNG states for {self.num_envs} sub-envs")
+        self.rng = list(states)
+
+
+@dataclass
+class _Worker:
+    actor: Any
+    sub_envs: np.ndarray
+    incarnation: str | None = None
+    """The actor's incarnation the driver knows; None after a loss (the next wave restores it)."""
+    weights: OrderedDict = field(default_factory=OrderedDict)
+    """slot -> fingerprint of the weights its copy holds (mirrors the actor's eviction)."""
+    restore_rng: bool = False
+    losses: int = 0
+
+
+class RayCollector(Collector):
+    """The collector over ``ray_cfg.workers`` Ray actors; sub-env ``i`` lives on worker
+    ``i % workers`` (each gets the same mix of tasks). Starts a local Ray unless one is
+    running or ``ray_cfg.address`` names a cluster; :meth:`close` kills the workers (and the
+    local Ray it started)."""
+
+    def __init__(self, env_cfg, n_exec: int, seed: int, ray_cfg, num_threads: int = 1):
+        ray = self._ray = import_ray()
+        layout = get_simulator(env_cfg.name).vec_env_layout(env_cfg.tasks, env_cfg.envs_per_task,
+                                                            env_options(env_cfg).get("perturbations"))
+        num_envs = len(layout["task_ids"])
+        if ray_cfg.workers > num_envs:
+            raise ValueError(f"ray.workers={ray_cfg.workers} is more than the {num_envs} sub-envs "
+                             f"(env.tasks x env.envs_per_task): use at most {num_envs}")
+        super().__init__(RemoteEnvs(**layout), seed)
+        self.cfg = ray_cfg
+        self.workers: list[_Worker] = []
+        self._metrics: dict[str, float] = {}
+        self._slots: weakref.WeakKeyDictionary[Policy, int] = weakref.WeakKeyDictionary()
+        self._next_slot = 0
+        self._owns_ray = not ray.is_initialized()
+        cpus = max(1, env_cfg.num_workers)  # a worker with env.num_workers steps its envs in that many processes
+        if self._owns_ray:
+            env_vars = {k: os.environ[k] for k in ("MUJOCO_GL",) if k in os.environ}
+            ray.init(address=ray_cfg.address, num_cpus=None if ray_cfg.address else ray_cfg.workers * cpus,
+                     include_dashboard=False, runtime_env={"env_vars": env_vars} if env_vars else None)
+        try:
+            actor_class = ray.remote(RolloutWorker).options(
+                num_cpus=cpus, max_restarts=ray_cfg.max_restarts, max_task_retries=0, scheduling_strategy="SPREAD")
+            for shard in shard_ranges(num_envs, ray_cfg.workers, "interleave"):
+                actor = actor_class.remote(env_cfg, n_exec, seed, list(shard), num_threads)
+                self.workers.append(_Worker(actor, np.asarray(shard)))
+            hellos = ray.get([w.actor.hello.remote() for w in self.workers], timeout=ray_cfg.timeout_s)
+        except BaseException as err:
+            self.close()
+            if isinstance(err, ray.exceptions.GetTimeoutError):
+                raise RuntimeError(f"the Ray rollout workers did not start within ray.timeout_s={ray_cfg.timeout_s}s "
+                                   "(is stepnft installed on every node?)") from err
+            raise
+        for w, (w.incarnation, states) in zip(self.workers, hellos):
+            for i, state in zip(w.sub_envs, states):
+                self.venv.rng[i] = state
+
+    # --- weights ------------------------------------------------------------------------------
+    def _slot(self, policy: Policy) -> int:
+        """A number for ``policy`` while it lives (workers keep their copies by slot)."""
+        if policy not in self._slots:
+            self._slots[policy] = self._next_slot
+            self._next_slot += 1
+        return self._slots[policy]
+
+    def _weight_messages(self, policy: Policy, workers: list[int]) -> tuple[dict[int, tuple], int, tuple]:
+        """``(slot, whole policy or None, changed tensors or None, training)`` for each of
+        ``workers``, the payloads put into the object store once and shared (the cost goes to
+        the metrics); and the slot and fingerprint the workers hold once they took them."""
+        slot, (structure, versions) = self._slot(policy), _fingerprint(policy)
+        start, sent_bytes, puts = time.perf_counter(), 0, {}
+        messages = {}
+        for k in workers:
+            held = self.workers[k].weights.get(slot)
+            if held is None or held[0] != structure:
+                key = "whole"
+            else:
+                key = tuple(sorted(name for name, v in versions.items() if held[1].get(name) != v))
+            if key not in puts:
+                if key == "whole":
+                    payload = policy
+                    sent_bytes += sum(t.numel() * t.element_size() for t in _named_tensors(policy).values())
+                else:
+                    tensors = _named_tensors(policy)
+                    payload = {name: tensors[name].detach().cpu() for name in key} or None
+                    sent_bytes += sum(t.numel() * t.element_size() for t in (payload or {}).values())
+                puts[key] = None if payload is None else self._ray.put(payload)
+            messages[k] = (slot, puts[key], None, policy.training) if key == "whole" else \
+                (slot, None, puts[key], policy.training)
+        self._add_metric("time/weight_push_s", time.perf_counter() - start)
+        self._add_metric("charts/weight_push_mb", sent_bytes / 2**20)
+        return messages, slot, (structure, versions)
+
+    def push(self, policy: Policy) -> float:
+        """Bring every worker's copy of ``policy`` up to date now (the waves do it themselves);
+        returns the seconds until all have it."""
+        start = time.perf_counter()
+        messages, slot, fingerprint = self._weight_messages(policy, list(range(len(self.workers))))
+        replies = self._ray.get([w.actor.sync.remote(w.incarnation, *messages[k]) for k, w in enumerate(self.workers)],
+                                timeout=self.cfg.timeout_s)
+        for k, (w, reply) in enumerate(zip(self.workers, replies)):
+            if reply is None:
+                self._lose(k, "restarted since its last wave", dropped=0)
+            else:
+                self._hold(w, slot, fingerprint)
+        return time.perf_counter() - start
+
+    @staticmethod
+    def _hold(worker: _Worker, slot: int, fingerprint) -> None:
+        worker.weights[slot] = fingerprint
+        worker.weights.move_to_end(slot)
+        while len(worker.weights) > MAX_POLICIES:
+            worker.weights.popitem(last=False)
+
+    # --- waves --------------------------------------------------------------------------------
+    def play_wave(self, policy: Policy, noise_level: float, generators: list[torch.Generator],
+                  seeds: list[int] | None = None, record: RolloutSpec | None = None,
+                  active: np.ndarray | None = None) -> Batch:
+        """:meth:`Collector.play_wave` on the workers (see the module doc for lost workers)."""
+        seeds, active = self._wave_plan(seeds, record, active)
+        while True:
+            parts = self._play_parts(policy, noise_level, generators, seeds, record, active)
+            if parts:
+                break
+        sub_envs = [w.sub_envs[active[w.sub_envs]] for w, _ in parts]
+        keep = None
+        if record is not None and record.group_size > 1 and len(parts) < self._busy(active):
+            keep = _whole_groups(Batch.concat([b for _, b in parts]), record.group_size)
+        return merge_wave([b for _, b in parts], sub_envs, keep)
+
+    def _busy(self, active: np.ndarray) -> int:
+        return sum(bool(active[w.sub_envs].any()) for w in self.workers)
+
+    def _play_parts(self, policy, noise_level, generators, seeds, record, active) -> list[tuple[_Worker, Batch]]:
+        ray = self._ray
+        jobs = [k for k, w in enumerate(self.workers) if active[w.sub_envs].any()]
+        done: dict[int, Batch] = {}
+        while jobs:
+            for k in jobs:
+                if self.workers[k].incarnation is None:
+                    self._call(k, "pid")  # a lost worker: wait until Ray has restarted it
+            messages, slot, fingerprint = self._weight_messages(policy, jobs)
+            refs = {}
+            for k in jobs:
+                w = self.workers[k]
+                refs[w.actor.play.remote(
+                    w.incarnation, *messages[k], noise_level, [generators[i].get_state() for i in w.sub_envs],
+                    None if seeds is None else [seeds[i] for i in w.sub_envs], record, active[w.sub_envs],
+                    [self.venv.rng[i] for i in w.sub_envs] if w.restore_rng else None)] = k
+            ready, hung = ray.wait(list(refs), num_returns=len(refs), timeout=self.cfg.timeout_s)
+            lost, restarted = [], []
+            for ref in ready:
+                k, w = refs[ref], self.workers[refs[ref]]
+                try:
+                    reply = ray.get(ref)
+                except _worker_lost_errors(ray) as err:
+                    lost.append((k, str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__))
+                    continue
+                if reply is None:  # restarted by Ray since its last wave: it played nothing
+                    restarted.append(k)
+                    continue
+                w.incarnation, batch, env_rng, generator_states, sync_s = reply
+                for i, rng, state in zip(w.sub_envs, env_rng, generator_states):
+                    self.venv.rng[i] = rng
+                    generators[i].set_state(state)
+                w.restore_rng = False
+                self._hold(w, slot, fingerprint)
+                self._add_metric("time/weight_push_s", sync_s)
+                done[k] = batch
+            for ref in hung:
+                ray.kill(self.workers[refs[ref]].actor, no_restart=False)
+                lost.append((refs[ref], f"no answer within ray.timeout_s={self.cfg.timeout_s}s"))
+            for k, why in lost:
+                self._lose(k, why, dropped=0 if record is None else int(active[self.workers[k].sub_envs].sum()))
+            for k in restarted:
+                self._lose(k, "restarted since its last wave", dropped=0)
+            # Evaluation plays fixed initial states: a lost part is played again.
+            jobs = restarted + ([k for k, _ in lost] if record is None else [])
+        return [(self.workers[k], done[k]) for k in sorted(done)]
+
+    def _lose(self, k: int, why: str, dropped: int) -> None:
+        """Worker ``k`` died or hung: Ray restarts it; its copies are gone and its sub-envs
+        resume from their RNG states before the lost wave."""
+        w = self.workers[k]
+        w.losses += 1
+        w.incarnation = None
+        w.weights.clear()
+        w.restore_rng = True
+        self._add_metric("charts/worker_restarts", 1)
+        self._add_metric("charts/dropped_episodes", dropped)
+        if w.losses > self.cfg.max_restarts:
+            raise RuntimeError(f"Ray rollout worker {k} was lost {w.losses} times (last: {why}), more than "
+                               f"ray.max_restarts={self.cfg.max_restarts}; continue with `stepnft train --resume RUN_DIR`")
+        print(f"stepnft: Ray rollout worker {k} lost ({why}); {dropped} episodes dropped", file=sys.stderr, flush=True)
+
+    # --- state, metrics, shutdown -------------------------------------------------------------
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        for w in self.workers:
+            w.restore_rng = True
+
+    def _add_metric(self, name: str, value: float) -> None:
+        self._metrics[name] = self._metrics.get(name, 0.0) + float(value)
+
+    def pop_metrics(self) -> dict[str, float]:
+        """Since the last call: ``time/weight_push_s`` (driver serialisation + the slowest
+        worker's copy), ``charts/weight_push_mb``, and after failures
+        ``charts/worker_restarts`` and ``charts/dropped_episodes``."""
+        out, self._metrics = self._metrics, {}
+        return out
+
+    def _call(self, k: int, method: str, *args):
+        """``method`` of worker ``k``, waiting (up to ``ray.timeout_s``) while Ray restarts it."""
+        ray, deadline = self._ray, time.monotonic() + self.cfg.timeout_s
+        while True:
+            try:
+                return ray.get(getattr(self.workers[k].actor, method).remote(*args),
+                               timeout=max(deadline - time.monotonic(), 0.01))
+            except ray.exceptions.ActorUnavailableError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"Ray rollout worker {k} did not come back within ray.timeout_s="
+                                       f"{self.cfg.timeout_s}s") from None
+                time.sleep(0.2)
+            except ray.exceptions.ActorDiedError as err:
+                raise RuntimeError(f"Ray rollout worker {k} is gone for good ({str(err).splitlines()[0]}); "
+                                   "continue with `stepnft train --resume RUN_DIR`") from err
+
+    def worker_pids(self) -> list[int]:
+        """The process id of each worker (e.g. to test what happens when one is killed)."""
+        return [self._call(k, "pid") for k in range(len(self.workers))]
+
+    def close(self) -> None:
+        for w in self.workers:
+            try:
+                self._ray.kill(w.actor, no_restart=True)
+            except Exception:  # noqa: BLE001 - already gone
+                pass
+        self.workers = []
+        if self._owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._owns_ray = False
+
+
+def _worker_lost_errors(ray) -> tuple[type[BaseException], ...]:
+    """Errors that mean the worker (not the code it ran) is gone: Ray restarts it."""
+    e = ray.exceptions
+    return (e.RayActorError, e.WorkerCrashedError, e.OutOfMemoryError, e.NodeDiedError, e.ObjectLostError)
+
+
+def _whole_groups(batch: Batch, group_size: int) -> torch.Tensor:
+    """``[E]`` bool: episodes whose group (task, initial-state seed) came back whole."""
+    key = batch.episode_task * 2**32 + batch.episode_seed
+    _, inverse, counts = key.unique(return_inverse=True, return_counts=True)
+    return counts[inverse] % group_size == 0
+
+
+def merge_wave(parts: list[Batch], sub_envs: list[np.ndarray], keep: torch.Tensor | None = None) -> Batch:
+    """One wave's batch from the parts its workers played (``sub_envs[j]``: the sub-env of
+    each episode row of ``parts[j]``), in the order one collector playing every sub-env
+    writes: episodes by sub-env, policy calls by (call round, sub-env), each call's recorded
+    steps together, in call order. ``keep`` ([E] bool over the parts' episodes in order):
+    drop the others with their calls and steps."""
+    batch = Batch.concat(parts)
+    env = torch.as_tensor(np.concatenate(sub_envs), dtype=torch.int64)
+    episodes = torch.argsort(env)
+    if keep is not None:
+        episodes = episodes[keep[episodes]]
+    new_episode = torch.full((batch.num_episodes,), -1, dtype=torch.int64)
+    new_episode[episodes] = torch.arange(len(episodes))
+    # The round of a call (the loop iteration of play_wave that made it): its rank among its episode's calls.
+    by_episode = torch.argsort(batch.episode, stable=True)
+    counts = torch.bincount(batch.episode, minlength=batch.num_episodes)
+    first = torch.cumsum(counts, 0) - counts
+    call_round = torch.empty_like(batch.episode)
+    call_round[by_episode] = torch.arange(batch.num_calls) - first[batch.episode[by_episode]]
+    kept = torch.nonzero(new_episode[batch.episode] >= 0).squeeze(1)
+    calls = kept[torch.argsort(call_round[kept] * (int(env.max()) + 1) + env[batch.episode[kept]])]
+    new_call = torch.full((batch.num_calls,), -1, dtype=torch.int64)
+    new_call[calls] = torch.arange(len(calls))
+    kept = torch.nonzero(new_call[batch.call] >= 0).squeeze(1)
+    steps = kept[torch.argsort(new_call[batch.call[kept]], stable=True)]
+    return Batch(
+        **{k: getattr(batch, k)[episodes] for k in EPISODE_KEYS},
+        obs={k: v[calls] for k, v in batch.obs.items()},
+        **{k: getattr(batch, k)[calls] for k in CALL_KEYS if k != "episode"}, episode=new_episode[batch.episode[calls]],
+        **{k: getattr(batch, k)[steps] for k in STEP_KEYS if k != "call"}, call=new_call[batch.call[steps]],
+    )

@@ -1,0 +1,331 @@
+"""Rollouts on Ray workers: the same episodes as the local collector, weights pushed only when
+they changed, lost and hung workers restarted with their episodes dropped, evaluation on the
+workers, nothing left running after close. One local Ray (2 CPUs) serves the module; the
+merging of workers' parts is tested without Ray."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from stepnft.algos.base import RolloutSpec
+from stepnft.batch import Batch
+from stepnft.config import EnvConfig, RayConfig
+from stepnft.envs import make_vec_env
+from stepnft.evaluate import evaluate_policy
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+from stepnft.rollout.collector import Collector
+from stepnft.rollout.ray_collector import merge_wave
+
+GOAL, HAND = slice(36, 39), slice(0, 3)
+ENV = EnvConfig(tasks=["reach-v3", "push-v3"], envs_per_task=3, max_episode_steps=80)
+SEED = 7
+
+
+class GoalSeeker(FlowPolicy):
+    """A random flow policy steered toward the reach goal: successes depend on the initial
+    state and the sampler's noise (so comparing outcomes means something)."""
+
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+        out.actions[..., :3] += 10.0 * (obs["state"][:, None, GOAL] - obs["state"][:, None, HAND])
+        return out
+
+
+class SlowSeeker(GoalSeeker):
+    """Sleeps in every policy call: long waves that cost no CPU (to kill a worker mid-wave)."""
+
+    delay = 0.1
+
+    def sample(self, obs, *args, **kwargs):
+        time.sleep(self.delay)
+        return super().sample(obs, *args, **kwargs)
+
+
+def goal_seeker(seed: int = 0, cls=GoalSeeker) -> GoalSeeker:
+    torch.manual_seed(seed)
+    return cls(FlowPolicyConfig(lang_dim=0, hidden_dim=16, num_layers=1, state_clip=100.0))
+
+
+def assert_same_batch(local: Batch, remote: Batch) -> None:
+    """Episodes, links and masks exactly; floats nearly: a policy forward on a worker's smaller
+    batch may round the last bits differently, and contacts in the simulator amplify that."""
+    for key in ("episode_success", "episode_task", "episode_length", "episode_seed", "episode", "call", "mask", "done"):
+        assert torch.equal(getattr(local, key), getattr(remote, key)), key
+    for key in ("actions", "x_t", "x_next", "v_old", "t", "dt", "reward"):
+        torch.testing.assert_close(getattr(local, key), getattr(remote, key), rtol=1e-2, atol=1e-2)
+    torch.testing.assert_close(local.obs["state"], remote.obs["state"], rtol=1e-2, atol=1e-2)
+
+
+# --- merging the workers' parts (no Ray needed) -------------------------------------------------
+def test_merged_parts_of_a_wave_are_the_whole_wave_in_its_order():
+    venv = make_vec_env(ENV, 4, SEED)
+    policy = goal_seeker()
+    spec, seeds = RolloutSpec(0.3, record_steps="all"), list(range(100, 106))
+    whole_collector = Collector(venv, seed=SEED)
+    whole = whole_collector.play_wave(policy, 0.3, whole_collector.env_generators, seeds=seeds, record=spec)
+    shards = [np.array([0, 3]), np.array([1, 4]), np.array([2, 5])]  # the workers' interleaved shares
+    parts = []
+    for shard in shards:
+        c = Collector(venv, seed=SEED)
+        parts.append(c.play_wave(policy, 0.3, c.env_generators, seeds=seeds, record=spec, active=np.isin(np.arange(6), shard)))
+    merged = merge_wave(parts, shards)
+    assert_same_batch(whole, merged)
+    assert whole.episode_success.any() and not whole.episode_success.all()
+
+    keep = torch.tensor([True, False, True, True, True, True])  # drop sub-env 3 with its calls and steps
+    kept = merge_wave(parts, shards, keep)
+    assert kept.num_episodes == 5 and kept.episode_seed.tolist() == [100, 101, 102, 104, 105]
+    calls, steps = merged.episode != 3, merged.step_episode != 3
+    assert torch.equal(kept.actions, merged.actions[calls]) and torch.equal(kept.x_t, merged.x_t[steps])
+    assert torch.equal(kept.step_episode, merged.step_episode[steps] - (merged.step_episode[steps] > 3).long())
+    venv.close()
+
+
+# --- on Ray ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ray_instance():
+    ray = pytest.importorskip("ray", reason='the Ray tests need the ray extra: pip install "stepnft[ray]"')
+    # 4 logical CPUs: the module's 2 workers and a training run's 2 at once (mostly idle; the
+    # machine's 2 cores do the work).
+    ray.init(num_cpus=4, include_dashboard=False, object_store_memory=80 * 2**20, log_to_driver=False)
+    # The test's policy class travels by value (the workers cannot import this test module).
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def collectors(ray_instance):
+    """A Ray collector over 2 workers and a local one over the same sub-envs and seeds."""
+    from stepnft.rollout.ray_collector import RayCollector
+
+    remote = RayCollector(ENV, 4, SEED, RayConfig(workers=2, timeout_s=120, max_restarts=10))
+    local = Collector(make_vec_env(ENV, 4, SEED), seed=SEED)
+    yield local, remote
+    remote.close()
+    local.close()
+
+
+@pytest.fixture
+def synced(collectors):
+    """Both collectors in the local one's current state (tests share them)."""
+    local, remote = collectors
+    remote.load_state_dict(local.state_dict())
+    remote.pop_metrics()
+    return local, remote
+
+
+def test_same_episodes_as_the_local_collector(synced):
+    local, remote = synced
+    policy = goal_seeker()
+    cases = [(RolloutSpec(0.3), 9, None), (RolloutSpec(0.3, record_steps="all"), 0, [2, 3]),
+             (RolloutSpec(0.3, group_size=3), 6, None)]
+    for spec, episodes, task_episodes in cases:
+        mine, theirs = local.collect(policy, episodes, spec, task_episodes), remote.collect(policy, episodes, spec, task_episodes)
+        assert_same_batch(mine, theirs)
+    assert theirs.episode_seed.unique().numel() == 2  # one initial state per group of 3
+    assert mine.episode_success.any()
+    state, remote_state = local.state_dict(), remote.state_dict()
+    assert state["env_rng"] == remote_state["env_rng"]
+    assert all(torch.equal(a, b) for a, b in zip(state["env_generators"], remote_state["env_generators"]))
+    assert torch.equal(state["generator"], remote_state["generator"])
+    assert evaluate_policy(policy, local, 5, seed=3) == evaluate_policy(policy, remote, 5, seed=3)
+
+
+def test_weights_are_pushed_only_when_they_changed(synced):
+    local, remote = synced
+    policy = goal_seeker(1)
+    spec = RolloutSpec(0.3)
+    whole = sum(t.numel() * 4 for t in policy.state_dict().values()) / 2**20
+    remote.collect(policy, 6, spec)
+    assert remote.pop_metrics()["charts/weight_push_mb"] == pytest.approx(whole)  # the whole policy, put once
+    remote.collect(policy, 6, spec)
+    assert remote.pop_metrics()["charts/weight_push_mb"] == 0
+    with torch.no_grad():
+        policy.net[0].weight.add_(0.1)  # one tensor written in place, as an optimizer step does
+    remote.load_state_dict(local.state_dict())
+    assert_same_batch(local.collect(policy, 6, spec), remote.collect(policy, 6, spec))  # the workers' copies follow
+    assert remote.pop_metrics()["charts/weight_push_mb"] == pytest.approx(policy.net[0].weight.numel() * 4 / 2**20)
+    assert remote.push(policy) > 0 and remote.pop_metrics()["charts/weight_push_mb"] == 0
+
+
+def test_a_worker_killed_mid_wave_is_restarted_and_its_episodes_dropped(synced):
+    local, remote = synced
+    policy = goal_seeker(cls=SlowSeeker)
+    with torch.no_grad():
+        policy.net[-1].weight.zero_()
+    remote.push(policy)
+    pid = remote.worker_pids()[0]
+    losses = remote.workers[0].losses
+    threading.Timer(0.4, os.kill, (pid, signal.SIGKILL)).start()  # a wave takes >= 10 calls x 0.1 s
+    batch = remote.collect(policy, 6, RolloutSpec(0.3))
+    metrics = remote.pop_metrics()
+    assert metrics["charts/worker_restarts"] == 1 and metrics["charts/dropped_episodes"] == 3
+    assert remote.workers[0].losses == losses + 1 and remote.worker_pids()[0] != pid
+    # Worker 1's sub-envs (1, 3, 5: tasks 0, 1, 1) came back; its episodes are the local ones.
+    assert batch.num_episodes == 3 and batch.episode_task.tolist() == [0, 1, 1]
+    whole = local.collect(policy, 6, RolloutSpec(0.3))
+    assert batch.episode_length.tolist() == whole.episode_length[1::2].tolist()
+    # The restarted worker's sub-envs resume from before the lost wave: its next episodes are
+    # the ones it lost (local sub-envs 0, 2, 4 of `whole`), the other worker's are new.
+    again = remote.collect(policy, 6, RolloutSpec(0.3))
+    assert again.num_episodes == 6
+    first = slice(0, 6)  # the first policy call of each sub-env, in sub-env order
+    torch.testing.assert_close(again.obs["state"][first][0::2], whole.obs["state"][first][0::2])
+    assert not torch.allclose(again.obs["state"][first][1::2], whole.obs["state"][first][1::2])
+
+
+def test_a_hung_worker_times_out_instead_of_deadlocking(synced):
+    _, remote = synced
+    policy = goal_seeker()
+    remote.collect(policy, 6, RolloutSpec(0.3))  # workers hold the policy
+    remote.pop_metrics()
+    pid = remote.worker_pids()[1]
+    os.kill(pid, signal.SIGSTOP)  # alive but silent
+    remote.cfg = replace(remote.cfg, timeout_s=3.0)
+    try:
+        start = time.perf_counter()
+        batch = remote.collect(policy, 6, RolloutSpec(0.3))
+        assert time.perf_counter() - start < 60
+    finally:
+        remote.cfg = replace(remote.cfg, timeout_s=120)
+    metrics = remote.pop_metrics()
+    assert metrics["charts/dropped_episodes"] == 3 and batch.num_episodes == 3
+    assert remote.worker_pids()[1] != pid
+    assert remote.collect(policy, 6, RolloutSpec(0.3)).num_episodes == 6
+
+
+def test_evaluation_plays_a_lost_part_again(synced):
+    local, remote = synced
+    policy = goal_seeker()
+    remote.collect(policy, 6, RolloutSpec(0.3))
+    os.kill(remote.worker_pids()[0], signal.SIGKILL)
+    assert evaluate_policy(policy, remote, 4, seed=11) == evaluate_policy(policy, local, 4, seed=11)
+    assert remote.pop_metrics()["charts/worker_restarts"] >= 1
+
+
+def test_a_worker_lost_too_often_stops_with_an_error(synced):
+    _, remote = synced
+    policy = goal_seeker()
+    remote.collect(policy, 6, RolloutSpec(0.3))
+    limit = remote.cfg.max_restarts
+    remote.cfg = replace(remote.cfg, max_restarts=remote.workers[0].losses)
+    try:
+        os.kill(remote.worker_pids()[0], signal.SIGKILL)
+        time.sleep(0.5)
+        with pytest.raises(RuntimeError, match="more than ray.max_restarts"):
+            remote.collect(policy, 6, RolloutSpec(0.3))
+    finally:
+        remote.cfg = replace(remote.cfg, max_restarts=limit)
+
+
+SHUTDOWN_SCRIPT = textwrap.dedent("""
+    import json, os, time
+    from stepnft.algos.base import RolloutSpec
+    from stepnft.config import EnvConfig, RayConfig
+    from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
+    from stepnft.rollout.ray_collector import RayCollector
+
+    def descendants():
+        children = {}
+        for entry in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except (FileNotFoundError, ProcessLookupError):
+                continue
+            if fields[0] != "Z":  # zombies are dead
+                children.setdefault(int(fields[1]), []).append(int(entry))
+        found, todo = [], [os.getpid()]
+        while todo:
+            for child in children.get(todo.pop(), []):
+                found.append(child)
+                todo.append(child)
+        return found
+
+    env = EnvConfig(name="bandit", tasks=["bandit"], envs_per_task=4, max_episode_steps=2)
+    collector = RayCollector(env, 2, 0, RayConfig(workers=2, timeout_s=120))
+    workers = collector.worker_pids()
+    policy = FlowPolicy(FlowPolicyConfig(state_dim=2, action_dim=2, horizon=2, n_exec=2, lang_dim=0, hidden_dim=8))
+    batch = collector.collect(policy, 4, RolloutSpec(0.3))
+    running = descendants()
+    collector.close()
+    deadline = time.time() + 30
+    while descendants() and time.time() < deadline:
+        time.sleep(0.2)
+    print(json.dumps({"episodes": batch.num_episodes, "workers": workers, "running": running,
+                      "left": descendants()}))
+""")
+
+
+def test_close_leaves_no_ray_or_worker_process_behind(ray_instance, tmp_path):
+    out = subprocess.run([sys.executable, "-c", SHUTDOWN_SCRIPT], capture_output=True, text=True, timeout=240,
+                         cwd=os.getcwd())
+    assert out.returncode == 0, out.stderr[-2000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["episodes"] == 4 and set(report["workers"]) <= set(report["running"])  # Ray ran under it
+    assert report["left"] == []
+    for pid in report["workers"]:
+        assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
+
+
+class Crash(Exception):
+    pass
+
+
+def test_a_killed_worker_loses_no_iteration_and_a_killed_driver_resumes(ray_instance, tmp_path, monkeypatch):
+    """Worker 0 killed as iteration 2 starts: the run goes on. The driver then dies in iteration
+    4 (after the checkpoint of 2): ``--resume`` (on one worker now) redoes 3 and 4 as before."""
+    from stepnft.algos.stepnft import StepNFT
+    from stepnft.cli import main
+    from stepnft.rollout.ray_collector import RayCollector
+    from stepnft.runs import read_metrics
+
+    policy_args = ["--policy.lang-dim", "0", "--policy.hidden-dim", "32", "--policy.num-layers", "1"]
+    torch.manual_seed(0)
+    FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=32, num_layers=1)).save_pretrained(tmp_path / "init")
+    run = tmp_path / "run"
+    args = ["train", "--run-dir", str(run), "--init", str(tmp_path / "init"), *policy_args, "--iterations", "4",
+            "--checkpoint-every", "2", "--episodes-per-iteration", "4", "--env.tasks", "reach-v3",
+            "--env.envs-per-task", "4", "--env.max-episode-steps", "20", "--eval.episodes", "4", "--eval.every", "0",
+            "--algo.minibatch-size", "32", "--ray.workers", "2", "--ray.timeout-s", "120"]
+    play_wave, update, waves, updates = RayCollector.play_wave, StepNFT.update, [], []
+
+    def kill_before_the_second_training_wave(self, policy, noise_level, generators, seeds=None, record=None,
+                                             active=None):
+        waves.append(record)
+        if record is not None and sum(r is not None for r in waves) == 2:
+            os.kill(self.worker_pids()[0], signal.SIGKILL)
+        return play_wave(self, policy, noise_level, generators, seeds, record, active)
+
+    def crash_on_fourth_update(*a, **kw):
+        updates.append(1)
+        if len(updates) == 4:
+            raise Crash
+        return update(*a, **kw)
+
+    monkeypatch.setattr(RayCollector, "play_wave", kill_before_the_second_training_wave)
+    monkeypatch.setattr(StepNFT, "update", crash_on_fourth_update)
+    with pytest.raises(Crash):
+        main(args)
+    first = read_metrics(run / "metrics.jsonl")
+    assert [r["iteration"] for r in first] == [0, 1, 2, 3]
+    assert first[2]["charts/worker_restarts"] == 1 and "charts/worker_restarts" not in first[3]
+    monkeypatch.setattr(StepNFT, "update", update)
+
+    assert main(["train", "--resume", str(run), "--ray.workers", "1"]) == 0
+    records = read_metrics(run / "metrics.jsonl")
+    assert [r["iteration"] for r in records] == [0, 1, 2, 3, 4, 4] and records[-1]["final"]
+    assert records[3]["env_steps"] == first[3]["env_steps"]
+    assert records[3]["losses/E_pos"] == pytest.approx(first[3]["losses/E_pos"], rel=1e-3)
+    assert json.loads((run / "summary.json").read_text())["iterations"] == 4
