@@ -60,7 +60,8 @@ def table(runs: list[dict], tasks: list[str]) -> str:
     lines.append(f"| **average** | {fmt(avg['before'])} | **{fmt(avg['after'])}** | {fmt(avg['best'])} | {seeds} |")
     below = {r["seed"]: r.get("below_start", []) for r in runs}
     lines.append("")
-    lines.append("⚠ = ended below its SFT start by more than the 95 % CI. Below start per seed: "
+    lines.append("⚠ = ended below its SFT start: the 95 % interval of the difference (Newcombe) lies below 0. "
+                 "Below start per seed: "
                  + "; ".join(f"s{s}: {', '.join(b) or 'none'}" for s, b in below.items()) + ".")
     return "\n".join(lines)
 

@@ -86,10 +86,19 @@ def _rate(successes: int, episodes: int) -> dict:
             "ci95": [lo, hi]}
 
 
+def difference_interval(before: dict, after: dict) -> tuple[float, float]:
+    """95 % interval of ``after - before`` success rates (Newcombe's method from the two Wilson
+    intervals; each argument a task's result: ``success`` and ``ci95``)."""
+    p1, (l1, u1) = after["success"], after["ci95"]
+    p2, (l2, u2) = before["success"], before["ci95"]
+    d = p1 - p2
+    return d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
+
+
 def tasks_below(before: dict, after: dict) -> list[str]:
-    """Tasks whose success after is below their success before by more than the after-CI
-    (the 95 % interval of ``after`` lies wholly below ``before``'s rate)."""
-    return [t for t, r in after["tasks"].items() if r["ci95"][1] < before["tasks"][t]["success"]]
+    """Tasks that ended below their start by more than the uncertainty: the 95 % interval of
+    the difference (:func:`difference_interval`) lies wholly below zero."""
+    return [t for t, r in after["tasks"].items() if difference_interval(before["tasks"][t], r)[1] < 0]
 
 
 def episode_generators(seeds: list[int]) -> list[torch.Generator]:

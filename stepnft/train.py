@@ -157,7 +157,8 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             f"test average {best_after['average']:.3f}")
         for name, below in (("policy/", summary["below_start"]), ("best_policy/", summary["best_below_start"])):
             if below:
-                log(f"warning: {name} ends below its SFT start by more than the 95 % CI on: {', '.join(below)}")
+                log(f"warning: {name} ends below its SFT start beyond the 95 % interval of the difference on: "
+                    f"{', '.join(below)}")
         return summary
 
 

@@ -240,13 +240,22 @@ def test_best_policy_is_chosen_on_validation_states_and_reported_on_test_states(
     assert (tmp_path / "run" / "learning_curve.png").is_file()
 
 
-def test_tasks_below_their_start_are_those_whose_interval_lies_below():
-    from stepnft.evaluate import tasks_below
+def test_tasks_below_their_start_are_those_whose_difference_interval_lies_below_zero():
+    from stepnft.evaluate import difference_interval, tasks_below, wilson_interval
 
-    before = {"tasks": {"a": {"success": 0.9}, "b": {"success": 0.5}, "c": {"success": 0.5}}}
-    after = {"tasks": {"a": {"success": 0.7, "ci95": [0.6, 0.8]}, "b": {"success": 0.45, "ci95": [0.35, 0.55]},
-                       "c": {"success": 0.9, "ci95": [0.8, 0.95]}}}
-    assert tasks_below(before, after) == ["a"]
+    def result(k, n=100):
+        return {"success": k / n, "ci95": list(wilson_interval(k, n))}
+
+    before = {"tasks": {"a": result(90), "b": result(50), "c": result(50), "d": result(100), "e": result(100)}}
+    after = {"tasks": {"a": result(70), "b": result(45), "c": result(90), "d": result(99), "e": result(94)}}
+    # 1.00 -> 0.99 is within the uncertainty; 1.00 -> 0.94 and 0.90 -> 0.70 are not.
+    assert tasks_below(before, after) == ["a", "e"]
+    lo, hi = difference_interval(result(50), result(90))
+    assert 0.25 < lo < 0.4 < hi < 0.55  # Newcombe's interval around +0.40
+    # Newcombe's method by hand for 0.90 vs 0.70 of 100, from the Wilson bounds
+    # 90/100: [0.8256, 0.9448] and 70/100: [0.6041, 0.7810].
+    expected = (0.2 - ((0.9 - 0.8256) ** 2 + (0.7810 - 0.7) ** 2) ** 0.5, 0.2 + ((0.9448 - 0.9) ** 2 + (0.7 - 0.6041) ** 2) ** 0.5)
+    assert difference_interval(result(70), result(90)) == pytest.approx(expected, abs=2e-4)
 
 
 def test_a_diverging_run_leaves_only_finite_tensors_and_strict_json(tmp_path):
