@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from stepnft.config import DEFAULT_TASKS, load_config
-from stepnft.runs import read_metrics
+from stepnft.runs import read_metrics, save_panels, task_panels
 from stepnft.train import train
 
 
@@ -67,35 +67,15 @@ def table(runs: list[dict], tasks: list[str]) -> str:
 
 
 def plot(out: Path, runs: list[dict], tasks: list[str]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     panels = [("average", "charts/validation_success_rate")] + [(t, f"validation/{t}") for t in tasks]
-    cols = min(3, len(panels))
-    rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
-    for ax, (title, key) in zip(axes.flat, panels):
+    fig, axes = task_panels([p[0] for p in panels])
+    for ax, (_, key) in zip(axes.flat, panels):
         for r in runs:
             records = read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
             points = [(x["env_steps"], x[key]) for x in records if x.get(key) is not None]
             if points:
                 ax.plot(*zip(*points), marker="o", ms=2, label=f"seed {r['seed']}")
-        ax.set_title(title, fontsize=10)
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-    for ax in axes.flat[len(panels):]:
-        ax.axis("off")
-    for ax in axes[-1]:
-        ax.set_xlabel("env steps")
-    axes.flat[0].legend(fontsize=7, loc="lower right")
-    fig.suptitle("validation success (ODE) during π-StepNFT, per seed")
-    fig.tight_layout()
-    path = out / "learning.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_panels(fig, axes, "validation success (ODE) during π-StepNFT, per seed", out / "learning.png")
 
 
 def main(argv=None) -> dict:

@@ -157,40 +157,53 @@ def read_metrics(path: Path, drop_torn_tail: bool = False) -> list[dict]:
     return records
 
 
-def plot_learning_curve(run_dir: Path) -> Path:
-    """``learning_curve.png``: success against env steps, the average and one panel per task:
-    rollouts (Flow-SDE, acting policy), validation evaluations during training and the test
-    evaluations before and after (ODE)."""
+def task_panels(titles: list[str]):
+    """A grid of success-rate panels (3 per row), one per title: ``(fig, axes)``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    cols = min(3, len(titles))
+    rows = -(-len(titles) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
+    for ax, title in zip(axes.flat, titles):
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(titles):]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("env steps")
+    return fig, axes
+
+
+def save_panels(fig, axes, title: str, path: Path) -> Path:
+    """Legend on the first panel, ``title`` on top, saved as ``path``."""
+    import matplotlib.pyplot as plt
+
+    axes.flat[0].legend(loc="lower right", fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_learning_curve(run_dir: Path) -> Path:
+    """``learning_curve.png``: success against env steps, the average and one panel per task:
+    rollouts (Flow-SDE, acting policy), validation evaluations during training and the test
+    evaluations before and after (ODE)."""
     records = read_metrics(run_dir / "metrics.jsonl")
     tasks = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith(("eval/", "rollout/"))})
     panels = [("average", "charts/rollout_success_rate", "charts/validation_success_rate", "charts/success_rate")]
     panels += [(t, f"rollout/{t}", f"validation/{t}", f"eval/{t}") for t in tasks]
-    cols = min(3, len(panels))
-    rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, sharex=True)
-    for ax, (title, roll_key, val_key, test_key) in zip(axes.flat, panels):
+    fig, axes = task_panels([p[0] for p in panels])
+    for ax, (_, roll_key, val_key, test_key) in zip(axes.flat, panels):
         for key, style, label in ((roll_key, dict(color="tab:gray", alpha=0.5), "rollout (Flow-SDE)"),
                                   (val_key, dict(color="tab:blue", marker="o", ms=3), "validation (ODE)"),
                                   (test_key, dict(color="tab:red", marker="s", ls="none"), "test (ODE)")):
             points = [(r["env_steps"], r[key]) for r in records if r.get(key) is not None]
             if points:
                 ax.plot(*zip(*points), label=label, **style)
-        ax.set_title(title, fontsize=10)
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-    for ax in axes.flat[len(panels):]:
-        ax.axis("off")
-    for ax in axes[-1]:
-        ax.set_xlabel("env steps")
-    axes.flat[0].legend(loc="lower right", fontsize=7)
-    fig.suptitle(f"stepnft: {run_dir.name}")
-    fig.tight_layout()
-    out = run_dir / "learning_curve.png"
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return save_panels(fig, axes, f"stepnft: {run_dir.name}", run_dir / "learning_curve.png")

@@ -103,6 +103,16 @@ class ChunkSample:
     path_v: Tensor | None = None
     """``[B, K, H, A]``: the velocity used at every step (only with ``keep_path``)."""
 
+    def recorded_steps(self, every_step: bool) -> dict[str, Tensor]:
+        """The transitions a rollout stores: the one recorded step per sample, or (``every_step``)
+        all K of :meth:`all_steps`; ``call`` [N] is each transition's sample row."""
+        if every_step:
+            steps = self.all_steps()
+            steps["call"] = steps.pop("sample")
+            return steps
+        return {"x_t": self.x_t, "x_next": self.x_next, "v_old": self.v_old, "t": self.t, "dt": self.dt,
+                "call": torch.arange(len(self.t), device=self.t.device)}
+
     def all_steps(self) -> dict[str, Tensor]:
         """Every denoising step as a transition, flattened to ``[B * K]`` (sample-major):
         ``x_t``, ``x_next``, ``v_old`` ``[B*K, H, A]``, ``t``, ``dt`` ``[B*K]``, ``sample`` (index)."""

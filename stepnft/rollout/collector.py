@@ -141,12 +141,8 @@ class Collector:
                     "done": torch.as_tensor(ended),
                     "episode": torch.as_tensor(np.searchsorted(rows, playing), dtype=torch.int64),
                 })
-                if keep_path:
-                    step = sample.all_steps()
-                    step["call"] = num_calls + step.pop("sample")
-                else:
-                    step = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t,
-                            "dt": sample.dt, "call": num_calls + torch.arange(len(playing))}
+                step = sample.recorded_steps(every_step=keep_path)
+                step["call"] = step["call"] + num_calls
                 steps.append(step)
                 num_calls += len(playing)
         seed_of = [-1 if seeds is None or seeds[i] is None else seeds[i] for i in rows]

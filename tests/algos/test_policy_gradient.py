@@ -26,12 +26,7 @@ def make_batch(episode, success, task=None, seed=None, noise_level=0.3, record_a
     task = torch.zeros(n_episodes, dtype=torch.int64) if task is None else torch.as_tensor(task)
     obs = {"state": torch.randn(n_calls, 3, generator=g), "task": task[episode]}
     sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=g, keep_path=record_all)
-    if record_all:
-        steps = sample.all_steps()
-        steps["call"] = steps.pop("sample")
-    else:
-        steps = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t, "dt": sample.dt,
-                 "call": torch.arange(n_calls)}
+    steps = sample.recorded_steps(every_step=record_all)
     batch = Batch(
         episode_success=torch.as_tensor(success, dtype=torch.bool), episode_task=task,
         episode_length=torch.bincount(episode, minlength=n_episodes) * 2,

@@ -21,12 +21,7 @@ def make_batch(n=256, seed=0, noise_level=0.3, record_all=False):
     state = torch.randn(n, 3, generator=g)
     obs = {"state": state, "task": torch.arange(n) % 2}
     sample = policy.sample(policy.processor(obs), noise_level=noise_level, generator=g, keep_path=record_all)
-    if record_all:
-        steps = sample.all_steps()
-        steps["call"] = steps.pop("sample")
-    else:
-        steps = {"x_t": sample.x_t, "x_next": sample.x_next, "v_old": sample.v_old, "t": sample.t, "dt": sample.dt,
-                 "call": torch.arange(n)}
+    steps = sample.recorded_steps(every_step=record_all)
     batch = Batch(
         episode_success=sample.actions[:, 0, 0] > 0, episode_task=obs["task"].clone(),
         episode_length=torch.full((n,), 2), episode_seed=torch.full((n,), -1), obs=obs, actions=sample.actions,
