@@ -2,9 +2,20 @@
 # Set up a fresh machine for stepnft: system libraries for offscreen rendering (when root),
 # the virtual environment .venv at the repo root (if missing), and stepnft with its extras.
 # Re-running is cheap: it reinstalls only when pyproject.toml or constraints.txt changed.
+#   --lerobot   also (or only that, when .venv is not wanted: see below) the optional LeRobot
+#               environment .venv-lerobot (SmolVLA, docs/lerobot.md): torch 2.10.0 +
+#               torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by constraints-lerobot.txt,
+#               with stepnft installed editable; about 2 minutes and 8.4 GB.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
+LEROBOT=0
+for arg in "$@"; do
+  case "$arg" in
+    --lerobot) LEROBOT=1 ;;
+    *) echo "bootstrap.sh: unknown option $arg (known: --lerobot)" >&2; exit 2 ;;
+  esac
+done
 
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
   # Mesa's CPU EGL, for MuJoCo rendering (videos, image observations) with MUJOCO_GL=egl.
@@ -22,4 +33,16 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install -q "torch==2.13.0"
   .venv/bin/python -m pip install -q -c constraints.txt -e ".[test,video]"
   echo "$want" > "$stamp"
+fi
+
+if [ "$LEROBOT" = 1 ]; then
+  [ -x .venv-lerobot/bin/python ] || "$PYTHON" -m venv .venv-lerobot
+  stamp=.venv-lerobot/.stepnft-installed
+  want=$(cat pyproject.toml constraints-lerobot.txt | sha1sum | cut -d' ' -f1)
+  if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    .venv-lerobot/bin/python -m pip install -q --upgrade pip
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "torch" "torchvision"
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[smolvla]" -e ".[test]"
+    echo "$want" > "$stamp"
+  fi
 fi

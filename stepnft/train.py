@@ -28,7 +28,7 @@ from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
 from stepnft.envs import get_simulator, make_vec_env
 from stepnft.evaluate import evaluate_policy, format_table, tasks_below
-from stepnft.policies.base import Policy, load_policy, non_finite
+from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
 from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
@@ -157,7 +157,7 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log)
+                                run_dir / "lang_cache", log, init=cfg.init)
         policy.save_pretrained(run_dir / "policy")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
@@ -173,7 +173,12 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
-    if cfg.policy.state_dim != sim.state_dim or cfg.policy.action_dim != sim.action_dim:
+    # An --init policy of another type (e.g. a LeRobot SmolVLA) brings its own sizes.
+    policy_cfg = load_policy_config(cfg.init) if cfg.init else cfg.policy
+    if policy_cfg.state_dim != sim.state_dim or policy_cfg.action_dim != sim.action_dim:
+        if policy_cfg is not cfg.policy:
+            raise ValueError(f"--init policy {cfg.init} takes {policy_cfg.state_dim}-d states and "
+                             f"{policy_cfg.action_dim}-d actions, {sim.label} has {sim.state_dim} and {sim.action_dim}")
         raise ValueError(f"{sim.label} has {sim.state_dim}-d states and {sim.action_dim}-d actions: set "
                          f"--policy.state-dim {sim.state_dim} --policy.action-dim {sim.action_dim}")
     created = not Path(cfg.run_dir).exists()
@@ -193,7 +198,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
         check_free(run_dir)
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
-    venv = make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed)
+    venv = make_vec_env(cfg.env, policy_cfg.n_exec, cfg.seed)
     collector = Collector(venv, seed=cfg.seed)
     stack.callback(collector.close)
     return run_dir, sim, tasks, collector
@@ -202,7 +207,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
 def _init_policy(cfg: TrainConfig) -> Policy:
     """The ``--init`` policy, checked against the run's policy settings before anything is written."""
     policy = load_policy(cfg.init)
-    if policy.config != cfg.policy:
+    if policy.type == "flow" and policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
         raise ValueError(f"--init policy {cfg.init} was built with other policy settings than this run's: "
                          f"pass the same --policy.* flags it was trained with (see its config.json)")
