@@ -2,10 +2,11 @@
 # Set up a fresh machine for stepnft: system libraries for offscreen rendering (when root),
 # the virtual environment .venv at the repo root (if missing), and stepnft with its extras.
 # Re-running is cheap: it reinstalls only when pyproject.toml or constraints.txt changed.
-#   --lerobot   also (or only that, when .venv is not wanted: see below) the optional LeRobot
-#               environment .venv-lerobot (SmolVLA, docs/lerobot.md): torch 2.10.0 +
-#               torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by constraints-lerobot.txt,
-#               with stepnft installed editable; about 2 minutes and 8.4 GB.
+#   --lerobot   also the optional LeRobot environment .venv-lerobot (SmolVLA, docs/lerobot.md):
+#               torch 2.10.0 + torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by
+#               constraints-lerobot.txt, with stepnft installed editable; about 2 minutes and
+#               8.4 GB (LeRobot's policies import torchvision, which has no wheel for .venv's
+#               CPU torch).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}

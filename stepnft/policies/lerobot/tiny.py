@@ -114,8 +114,9 @@ class NewSmolVLA:
     """Seed of the random initialisation."""
 
 
-def new_smolvla(spec: NewSmolVLA):
-    """Build and save the policy :class:`NewSmolVLA` describes; returns it."""
+def build_smolvla(spec: NewSmolVLA, vlm_dir: str | Path):
+    """A new, randomly initialised SmolVLA adapter as ``spec`` describes, its VLM configuration
+    written to ``vlm_dir`` (not saved: see :func:`new_smolvla`)."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
@@ -123,10 +124,7 @@ def new_smolvla(spec: NewSmolVLA):
     from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
     from stepnft.policies.lerobot.smolvla import SmolVLAAdapter
 
-    out = Path(spec.out)
-    if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} is not empty: choose a new folder for the policy")
-    vlm = write_vlm(out / "vlm", spec.size)
+    vlm = write_vlm(vlm_dir, spec.size)
     side = SIZES[spec.size]["vision"]["image_size"]
     pad = 32 if spec.size == "smolvla" else 0  # SmolVLA pads state and action to 32; the tiny model does not pad
     features = {"observation.state": PolicyFeature(FeatureType.STATE, (spec.state_dim,))}
@@ -139,6 +137,15 @@ def new_smolvla(spec: NewSmolVLA):
         resize_imgs_with_padding=(side, side), input_features=features,
         output_features={"action": PolicyFeature(FeatureType.ACTION, (spec.action_dim,))}, device="cpu")
     torch.manual_seed(spec.seed)
-    policy = SmolVLAAdapter.build(LeRobotPolicyConfig(train=spec.train), lerobot_cfg, None, None)
+    return SmolVLAAdapter.build(LeRobotPolicyConfig(train=spec.train), lerobot_cfg, None, None)
+
+
+def new_smolvla(spec: NewSmolVLA):
+    """Build and save the policy :class:`NewSmolVLA` describes (its VLM configuration in
+    ``out/vlm``); returns it."""
+    out = Path(spec.out)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} is not empty: choose a new folder for the policy")
+    policy = build_smolvla(spec, out / "vlm")
     policy.save_pretrained(out)
     return policy
