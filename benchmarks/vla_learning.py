@@ -146,38 +146,44 @@ def main() -> None:
     images = demo_images(episodes, args.max_episode_steps)
     times["demos_s"] = time.perf_counter() - t0
 
-    # SmolVLA: a new tiny one, SFT on the camera demonstrations, then π-StepNFT from the CLI.
+    # SmolVLA: a new tiny one, SFT on the camera demonstrations (kept in OUT/smolvla_sft and
+    # reused by later runs into the same OUT), then π-StepNFT from the CLI.
     t0 = time.perf_counter()
     torch.set_num_threads(1)
-    tiny = out / "tiny_smolvla"
-    if not tiny.is_dir():
-        new_smolvla(NewSmolVLA(out=str(tiny), cameras=["corner2"], image_size=CameraChunkEnv.image_size,
-                               seed=args.seed))
-    policy = load_policy(tiny)
-    data = demos_to_chunks(episodes, args.tasks, policy.config.horizon)
-    data["obs"]["image"] = torch.from_numpy(np.concatenate([im[: len(e.actions)] for im, e in zip(images, episodes)]))
-    policy.processor.fit(data["obs"]["state"])
-    policy.processor.bind_instructions([instruction_for(t) for t in args.tasks])
-    losses = sft_train(policy, data, SFTConfig(steps=args.sft_steps, batch_size=64, lr=1e-3, time_law="beta"),
-                       torch.Generator().manual_seed(args.seed))
-    policy.save_pretrained(out / "smolvla_sft")
-    times["smolvla_sft_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    cli(["train", "--init", out / "smolvla_sft", "--run-dir", out / "smolvla_rl", "--env.name", STANDIN, *common])
-    times["smolvla_rl_s"] = time.perf_counter() - t0
+    report_path = out / "report.json"
+    report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+    if not (out / "smolvla_sft" / "config.json").is_file():
+        tiny = out / "tiny_smolvla"
+        if not tiny.is_dir():
+            new_smolvla(NewSmolVLA(out=str(tiny), cameras=["corner2"], image_size=CameraChunkEnv.image_size,
+                                   seed=args.seed))
+        policy = load_policy(tiny)
+        data = demos_to_chunks(episodes, args.tasks, policy.config.horizon)
+        data["obs"]["image"] = torch.from_numpy(np.concatenate([im[: len(e.actions)]
+                                                                for im, e in zip(images, episodes)]))
+        policy.processor.fit(data["obs"]["state"])
+        policy.processor.bind_instructions([instruction_for(t) for t in args.tasks])
+        losses = sft_train(policy, data, SFTConfig(steps=args.sft_steps, batch_size=64, lr=1e-3, time_law="beta"),
+                           torch.Generator().manual_seed(args.seed))
+        policy.save_pretrained(out / "smolvla_sft")
+        times["smolvla_sft_s"] = time.perf_counter() - t0
+        report["smolvla_sft"] = {"chunks": len(data["actions"]), "loss_first_50": float(np.mean(losses[:50])),
+                                 "loss_last_50": float(np.mean(losses[-50:])), "args": vars(args)}
+    runs = {f"smolvla_it{args.iterations}": ["--init", out / "smolvla_sft", "--env.name", STANDIN],
+            # The MLP flow policy (state only) on the same tasks, demonstrations and RL budget.
+            f"mlp_it{args.iterations}": ["--sft.steps", 3000]}
+    for name, flags in runs.items():
+        t0 = time.perf_counter()
+        cli(["train", "--run-dir", out / name, *flags, *common])
+        times[f"{name}_s"] = time.perf_counter() - t0
 
-    # The MLP flow policy (state only) on the same tasks, demonstrations and RL budget.
-    t0 = time.perf_counter()
-    cli(["train", "--run-dir", out / "mlp_rl", "--sft.steps", 3000, *common])
-    times["mlp_s"] = time.perf_counter() - t0
-
-    report = {"args": vars(args), "times_s": times, "smolvla_sft_loss": [float(np.mean(losses[:50])),
-                                                                        float(np.mean(losses[-50:]))]}
-    for name in ("smolvla_rl", "mlp_rl"):
+    report.setdefault("times_s", {}).update(times)
+    for name in runs:
         summary = json.loads((out / name / "summary.json").read_text())
         report[name] = {t: {k: summary["tasks"][t][k]["success"] for k in ("before", "after", "best")}
-                        for t in args.tasks} | {"average": summary["average"], "env_steps": summary["env_steps"]}
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+                        for t in args.tasks} | {"average": summary["average"], "env_steps": summary["env_steps"],
+                                                "args": vars(args)}
+    report_path.write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
 
 

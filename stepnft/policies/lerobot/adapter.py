@@ -20,6 +20,7 @@ run once per call into the VLM's key/value cache), its denoising step against th
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import json
 import os
@@ -43,6 +44,12 @@ from stepnft.policies.lerobot.processor import LeRobotProcessor  # noqa: E402
 
 LEROBOT_DIR = "lerobot"
 VLM_DIR = "vlm"
+
+
+def lazy(target: str) -> Callable[[], Any]:
+    """``module:name`` imported when first called (LeRobot's policy modules are heavy)."""
+    module, name = target.split(":")
+    return lambda: getattr(importlib.import_module(module), name)
 
 
 @contextlib.contextmanager

@@ -15,9 +15,11 @@ needs no LeRobot, so the training loop can size its environments before anything
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
+
+from stepnft.policies.flow.configuration_flow import FlowPolicyConfig
 
 TRAIN_SCOPES = ("expert", "expert+state", "vlm")
 
@@ -58,16 +60,9 @@ class LeRobotPolicyConfig:
         if self.horizon and self.n_exec > self.horizon:
             raise ValueError(f"policy n_exec ({self.n_exec}) must be <= the chunk size ({self.horizon})")
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "LeRobotPolicyConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown policy config keys {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**data)
+    # The flow policy's JSON round trip (unknown keys refused), shared.
+    to_dict = FlowPolicyConfig.to_dict
+    from_dict = classmethod(FlowPolicyConfig.from_dict.__func__)
 
     @classmethod
     def read(cls, directory: str | Path) -> "LeRobotPolicyConfig":

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import PolicyUnavailable
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
 
 from lerobot.policies.pi0.modeling_pi0 import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS  # noqa: E402
@@ -54,38 +54,14 @@ class PiPrefix:
     state: Tensor | None = None
 
 
-def _pi0_class():
-    from lerobot.policies.pi0.modeling_pi0 import PI0Policy
-
-    return PI0Policy
-
-
-def _pi0_pipelines():
-    from lerobot.policies.pi0.processor_pi0 import make_pi0_pre_post_processors
-
-    return make_pi0_pre_post_processors
-
-
-def _pi05_class():
-    from lerobot.policies.pi05.modeling_pi05 import PI05Policy
-
-    return PI05Policy
-
-
-def _pi05_pipelines():
-    from lerobot.policies.pi05.processor_pi05 import make_pi05_pre_post_processors
-
-    return make_pi05_pre_post_processors
-
-
 class PI0Adapter(LeRobotFlowPolicy):
     """LeRobot's π0 with stepnft owning the denoising loop."""
 
     type = "pi0"
     label = "π0"
     state_in_suffix = True
-    lerobot_class = staticmethod(_pi0_class)
-    make_pipelines = staticmethod(_pi0_pipelines)
+    lerobot_class = staticmethod(lazy("lerobot.policies.pi0.modeling_pi0:PI0Policy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.pi0.processor_pi0:make_pi0_pre_post_processors"))
 
     @classmethod
     def build(cls, settings, lerobot_cfg, lerobot_dir, vlm, device="cpu"):
@@ -145,5 +121,5 @@ class PI05Adapter(PI0Adapter):
     type = "pi05"
     label = "π0.5"
     state_in_suffix = False
-    lerobot_class = staticmethod(_pi05_class)
-    make_pipelines = staticmethod(_pi05_pipelines)
+    lerobot_class = staticmethod(lazy("lerobot.policies.pi05.modeling_pi05:PI05Policy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.pi05.processor_pi05:make_pi05_pre_post_processors"))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
 
 from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
@@ -31,24 +31,12 @@ class SmolVLAPrefix:
     embeddings: tuple[Tensor, Tensor] | None = None
 
 
-def _smolvla_class():
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
-
-    return SmolVLAPolicy
-
-
-def _smolvla_pipelines():
-    from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
-
-    return make_smolvla_pre_post_processors
-
-
 class SmolVLAAdapter(LeRobotFlowPolicy):
     """LeRobot's SmolVLA with stepnft owning the denoising loop."""
 
     type = "smolvla"
-    lerobot_class = staticmethod(_smolvla_class)
-    make_pipelines = staticmethod(_smolvla_pipelines)
+    lerobot_class = staticmethod(lazy("lerobot.policies.smolvla.modeling_smolvla:SmolVLAPolicy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.smolvla.processor_smolvla:make_smolvla_pre_post_processors"))
 
     @property
     def model(self) -> nn.Module:
