@@ -23,6 +23,7 @@ Once camera observations are merged: drop the stand-in and run the same two step
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -121,6 +122,10 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=20, help="test episodes per task")
     parser.add_argument("--max-episode-steps", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sft-train", default="expert", choices=["expert", "expert+state", "vlm"],
+                        help="parameters SFT trains (a new tiny model's VLM and state projection are random: "
+                             "expert+state or vlm give SFT more to fit with); RL trains --rl-train")
+    parser.add_argument("--rl-train", default="expert", choices=["expert", "expert+state", "vlm"])
     args = parser.parse_args()
 
     from stepnft.algos.sft import SFTConfig, sft_train
@@ -156,7 +161,7 @@ def main() -> None:
         tiny = out / "tiny_smolvla"
         if not tiny.is_dir():
             new_smolvla(NewSmolVLA(out=str(tiny), cameras=["corner2"], image_size=CameraChunkEnv.image_size,
-                                   seed=args.seed))
+                                   seed=args.seed, train=args.sft_train))
         policy = load_policy(tiny)
         data = demos_to_chunks(episodes, args.tasks, policy.config.horizon)
         data["obs"]["image"] = torch.from_numpy(np.concatenate([im[: len(e.actions)]
@@ -165,6 +170,7 @@ def main() -> None:
         policy.processor.bind_instructions([instruction_for(t) for t in args.tasks])
         losses = sft_train(policy, data, SFTConfig(steps=args.sft_steps, batch_size=64, lr=1e-3, time_law="beta"),
                            torch.Generator().manual_seed(args.seed))
+        policy.config = dataclasses.replace(policy.config, train=args.rl_train)  # what `train --init` trains
         policy.save_pretrained(out / "smolvla_sft")
         times["smolvla_sft_s"] = time.perf_counter() - t0
         report["smolvla_sft"] = {"chunks": len(data["actions"]), "loss_first_50": float(np.mean(losses[:50])),

@@ -5,8 +5,9 @@ without the prefix cache.
 With the cache (the default) a call encodes the vision-language prefix once and each of the K
 denoising steps runs the action expert against its keys and values; in the update (action
 expert trained, ``train: expert``) the prefix is encoded without gradients. Without it, every
-denoising step, and every update sample, runs prefix and expert jointly (SmolVLA's training
-forward). Models are randomly initialised from offline configurations (no download).
+denoising step, and every update sample, runs the whole model, vision encoder included
+(SmolVLA's training forward). Models are randomly initialised from offline configurations (no
+download). Each figure is timed over ``--reps`` calls after one warm-up call.
 
     .venv-lerobot/bin/python benchmarks/vla_throughput.py --out benchmarks/results/vla_throughput.json
     .venv-lerobot/bin/python benchmarks/vla_throughput.py --sizes tiny --reps 2      # a quick check
@@ -69,6 +70,7 @@ def measure(size: str, reps: int, tmp: Path) -> dict:
         per_call = timed(lambda: policy.sample(policy.processor(raw), noise_level=0.2,
                                                generator=torch.Generator().manual_seed(0)), reps)
         out[f"calls_per_s_{label}"] = s["batch"] / per_call
+        print(size, f"calls_per_s_{label}", out[f"calls_per_s_{label}"], flush=True)
         # One π-StepNFT epoch over `update_samples` recorded steps (one per call).
         n = s["update_samples"]
         raw = raw_obs(n, image)
@@ -84,6 +86,7 @@ def measure(size: str, reps: int, tmp: Path) -> dict:
         per_update = timed(lambda: stepnft_update(policy, optimizer, batch, cfg, torch.Generator().manual_seed(0)),
                            max(1, reps // 2))
         out[f"update_samples_per_s_{label}"] = n / per_update
+        print(size, f"update_samples_per_s_{label}", out[f"update_samples_per_s_{label}"], flush=True)
     return out
 
 
@@ -100,7 +103,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes:
             results["sizes"][size] = measure(size, args.reps, Path(tmp))
-            print(size, json.dumps(results["sizes"][size], indent=1))
+            print(size, json.dumps(results["sizes"][size], indent=1), flush=True)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(results, indent=2))

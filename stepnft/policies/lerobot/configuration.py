@@ -43,8 +43,9 @@ class LeRobotPolicyConfig:
     """Denoising steps K of the samplers (0: LeRobot's num_steps / num_inference_steps)."""
     prefix_cache: bool = True
     """Encode the prefix once per policy call and denoise against its cached keys and values.
-    False re-runs prefix and action expert jointly at every denoising step (LeRobot's training
-    forward): the same velocities, K times the prefix compute; for comparisons only."""
+    False runs the whole model (vision, language, state and action expert: SmolVLA's training
+    forward) at every denoising step: the same velocities, K times the prefix compute; for
+    comparisons only."""
     state_dim: int = 0
     """State size the policy takes (recorded from the LeRobot config)."""
     action_dim: int = 0

@@ -23,12 +23,12 @@ from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TO
 
 @dataclass
 class SmolVLAPrefix:
-    """One policy call's prefix: its padding mask ``[B, L]`` and per-layer key/value cache (or,
-    without the cache, the prefix embeddings to re-run with every step)."""
+    """One policy call's prefix: its padding mask ``[B, L]`` and per-layer key/value cache; or,
+    without the cache, the processed observations the whole model re-reads at every step."""
 
-    pad_masks: Tensor
+    pad_masks: Tensor | None = None
     past_key_values: dict | None = None
-    embeddings: tuple[Tensor, Tensor] | None = None
+    obs: dict[str, Tensor] | None = None
 
 
 class SmolVLAAdapter(LeRobotFlowPolicy):
@@ -76,18 +76,21 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
             "tokenizer_processor": {"tokenizer_name": lerobot_cfg.vlm_model_name}}
 
     # --- the prefix, once per policy call -----------------------------------------------------------
+    def _embed_prefix(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """SmolVLA's prefix embeddings, padding and attention masks of processed ``obs``."""
+        if self.lerobot.config.adapt_to_pi_aloha:
+            obs = obs | {OBS_STATE: self.lerobot._pi_aloha_decode_state(obs[OBS_STATE].clone())}
+        images, img_masks = self.lerobot.prepare_images(obs)
+        return self.model.embed_prefix(images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK],
+                                       state=self.lerobot.prepare_state(obs))
+
     def encode(self, obs: dict[str, Tensor]) -> SmolVLAPrefix:
-        """SmolVLA's prefix of processed ``obs`` and its key/value cache (no gradients unless
-        prefix parameters are trained)."""
+        """SmolVLA's prefix of processed ``obs`` run into its key/value cache (no gradients unless
+        prefix parameters are trained); without the cache, nothing is computed here."""
+        if not self.config.prefix_cache:
+            return SmolVLAPrefix(obs=obs)
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
-            if self.lerobot.config.adapt_to_pi_aloha:
-                obs = obs | {OBS_STATE: self.lerobot._pi_aloha_decode_state(obs[OBS_STATE].clone())}
-            images, img_masks = self.lerobot.prepare_images(obs)
-            state = self.lerobot.prepare_state(obs)
-            embs, pad_masks, att_masks = self.model.embed_prefix(
-                images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK], state=state)
-            if not self.config.prefix_cache:
-                return SmolVLAPrefix(pad_masks, embeddings=(embs, att_masks))
+            embs, pad_masks, att_masks = self._embed_prefix(obs)
             _, past_key_values = self.model.vlm_with_expert.forward(
                 attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
                 past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
@@ -96,16 +99,17 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
     # --- the action expert, once per denoising step ------------------------------------------------
     def denoise(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
         """SmolVLA's ``denoise_step`` at ``x_t`` ``[B, chunk_size, max_action_dim]``, ``t`` ``[B]``."""
-        if context.past_key_values is not None:
+        if context.obs is None:
             return self.model.denoise_step(prefix_pad_masks=context.pad_masks, past_key_values=context.past_key_values,
                                            x_t=x_t, timestep=t)
-        return self._joint_velocity(context, x_t, t)
+        return self._joint_velocity(context.obs, x_t, t)
 
-    def _joint_velocity(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
-        """Prefix and action expert in one pass (SmolVLA's training forward): no cache."""
-        prefix_embs, prefix_att = context.embeddings
+    def _joint_velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
+        """The whole model in one pass, vision included (SmolVLA's training forward): no cache."""
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
+            prefix_embs, prefix_pad, prefix_att = self._embed_prefix(obs)
         suffix_embs, suffix_pad, suffix_att = self.model.embed_suffix(x_t, t)
-        pad_masks = torch.cat([context.pad_masks, suffix_pad], dim=1)
+        pad_masks = torch.cat([prefix_pad, suffix_pad], dim=1)
         att_masks = torch.cat([prefix_att, suffix_att], dim=1)
         (_, suffix_out), _ = self.model.vlm_with_expert.forward(
             attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
