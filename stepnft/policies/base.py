@@ -8,7 +8,10 @@ observations go through ``policy.processor`` first (normalisation, instruction l
 the network.
 
 Saved as ``config.json`` (with ``"type"``) + ``model.safetensors`` + ``processor.safetensors``;
-loading dispatches on ``type`` and never unpickles.
+loading dispatches on ``type`` and never unpickles. A policy saved in another layout (a LeRobot
+policy: ``stepnft.policies.lerobot``) overrides ``load_folder`` / ``save_pretrained``; one whose
+chunks live in another space than the env's actions (normalised, padded) overrides
+``env_actions`` / ``model_actions``.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from stepnft.policies.lerobot import require_lerobot
 
 require_lerobot()
 
-SPECIAL_TOKENS = {"fake_image_token": "<fake_token_around_image>", "image_token": "<image>",
+SMOLVLM_TOKENS = {"fake_image_token": "<fake_token_around_image>", "image_token": "<image>",
                   "end_of_utterance_token": "<end_of_utterance>", "global_image_token": "<global-img>"}
 
 SIZES = {
@@ -53,9 +53,9 @@ def byte_tokenizer():
     tokenizer = Tokenizer(models.BPE(vocab={c: i for i, c in enumerate(alphabet)}, merges=[]))
     tokenizer.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
     tokenizer.decoder = decoders.ByteLevel()
-    tokenizer.add_special_tokens(["<|im_start|>", "<|im_end|>", "<video>", *SPECIAL_TOKENS.values()])
+    tokenizer.add_special_tokens(["<|im_start|>", "<|im_end|>", "<video>", *SMOLVLM_TOKENS.values()])
     return PreTrainedTokenizerFast(tokenizer_object=tokenizer, bos_token="<|im_start|>", eos_token="<end_of_utterance>",
-                                   pad_token="<|im_end|>", extra_special_tokens=SPECIAL_TOKENS,
+                                   pad_token="<|im_end|>", extra_special_tokens=SMOLVLM_TOKENS,
                                    model_input_names=["input_ids", "attention_mask"])
 
 
@@ -75,7 +75,7 @@ def write_vlm(folder: str | Path, size: Literal["tiny", "smolvla"] = "tiny") -> 
                          max_position_embeddings=8192, pad_token_id=tokenizer.pad_token_id, tie_word_embeddings=False,
                          **spec["text"]),
         vision_config=vision, scale_factor=spec["scale_factor"],
-        image_token_id=tokenizer.convert_tokens_to_ids(SPECIAL_TOKENS["image_token"]), pad_token_id=tokenizer.pad_token_id)
+        image_token_id=tokenizer.convert_tokens_to_ids(SMOLVLM_TOKENS["image_token"]), pad_token_id=tokenizer.pad_token_id)
     config.save_pretrained(folder)
     edge = {"longest_edge": vision["image_size"]}
     image_seq_len = (vision["image_size"] // vision["patch_size"]) ** 2 // spec["scale_factor"] ** 2
