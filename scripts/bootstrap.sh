@@ -2,15 +2,23 @@
 # Set up a fresh machine for stepnft: system libraries for offscreen rendering (when root),
 # the virtual environment .venv at the repo root (if missing), and stepnft with its extras.
 # Re-running is cheap: it reinstalls only when pyproject.toml or constraints.txt changed.
-# --libero adds the LIBERO extra (docs/libero.md; 622 MB of assets), as STEPNFT_EXTRAS=...,libero does.
+# Options:
+#   --libero    adds the LIBERO extra (docs/libero.md; 622 MB of assets), as STEPNFT_EXTRAS=...,libero does.
+#   --lerobot   also the optional LeRobot environment .venv-lerobot (SmolVLA, docs/lerobot.md):
+#               torch 2.10.0 + torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by
+#               constraints-lerobot.txt, with stepnft installed editable; about 2 minutes and
+#               8.4 GB (LeRobot's policies import torchvision, which has no wheel for .venv's
+#               CPU torch).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 EXTRAS=${STEPNFT_EXTRAS:-test,video}
+LEROBOT=0
 for arg in "$@"; do
   case "$arg" in
     --libero) EXTRAS="$EXTRAS,libero" ;;
-    *) echo "bootstrap.sh: unknown option $arg (known: --libero)" >&2; exit 2 ;;
+    --lerobot) LEROBOT=1 ;;
+    *) echo "bootstrap.sh: unknown option $arg (known: --libero, --lerobot)" >&2; exit 2 ;;
   esac
 done
 
@@ -37,4 +45,16 @@ if [ "$extras" != "$installed" ]; then
   .venv/bin/python -m pip install -q "torch==2.13.0"
   .venv/bin/python -m pip install -q -c constraints.txt -e ".[$extras]"
   echo "$want $extras" > "$stamp"
+fi
+
+if [ "$LEROBOT" = 1 ]; then
+  [ -x .venv-lerobot/bin/python ] || "$PYTHON" -m venv .venv-lerobot
+  stamp=.venv-lerobot/.stepnft-installed
+  want=$(cat pyproject.toml constraints-lerobot.txt | sha1sum | cut -d' ' -f1)
+  if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    .venv-lerobot/bin/python -m pip install -q --upgrade pip
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "torch" "torchvision"
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[smolvla]" -e ".[test]"
+    echo "$want" > "$stamp"
+  fi
 fi

@@ -200,7 +200,9 @@ class TrainConfig:
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
     init: str | None = None
-    """Saved policy folder to start from; None: run few-shot SFT on the demonstrations first."""
+    """Saved policy folder to start from; None: run few-shot SFT on the demonstrations first.
+    ``stepnft sft --init``: the policy SFT fine-tunes (any type, e.g. a LeRobot SmolVLA folder,
+    whose sizes then replace the --policy.* ones; docs/lerobot.md)."""
     checkpoint_every: int = 10
     """Iterations between checkpoints (the last one is always written)."""
     num_threads: int = 1

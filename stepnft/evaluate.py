@@ -187,7 +187,7 @@ def _play_filmed(policy: Policy, env, task_index: int, seed: int,
         raw = {k: torch.as_tensor(np.asarray(v)[None]) for k, v in obs.items()} | {"task": torch.tensor([task_index])}
         seen = obs.get("image")
         sample = policy.sample(policy.processor(raw), noise_level=0.0, generator=generator)
-        for action in sample.actions[0, : policy.config.n_exec].clamp(-1.0, 1.0).numpy():
+        for action in policy.env_actions(sample.actions[0, : policy.config.n_exec]).clamp(-1.0, 1.0).numpy():
             obs, _, terminated, truncated, info = env.step(action[None])
             frames.append(_beside(env.render(), seen))
             done = terminated or truncated

@@ -30,7 +30,7 @@ from stepnft.config import TrainConfig, save_config
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import RenderingError
 from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks_below
-from stepnft.policies.base import Policy, load_policy, non_finite
+from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
 from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
@@ -171,7 +171,7 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log, env_cfg=cfg.env)
+                                run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init)
         policy.save_pretrained(run_dir / "policy")
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
@@ -189,7 +189,13 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
     state_dim = sim.state_dim_for(cfg.env.state_obs)
-    if cfg.policy.state_dim != state_dim or cfg.policy.action_dim != sim.action_dim:
+    # An --init policy of another type (e.g. a LeRobot SmolVLA) brings its own sizes.
+    policy_cfg = load_policy_config(cfg.init) if cfg.init else cfg.policy
+    if policy_cfg.state_dim != state_dim or policy_cfg.action_dim != sim.action_dim:
+        if policy_cfg is not cfg.policy:
+            raise ValueError(f"--init policy {cfg.init} takes {policy_cfg.state_dim}-d states and "
+                             f"{policy_cfg.action_dim}-d actions, {sim.label} has {state_dim} (env.state_obs "
+                             f"{cfg.env.state_obs}) and {sim.action_dim}")
         raise ValueError(f"{sim.label} has {state_dim}-d states (env.state_obs {cfg.env.state_obs}) and "
                          f"{sim.action_dim}-d actions: set --policy.state-dim {state_dim} --policy.action-dim {sim.action_dim}")
     created = not Path(cfg.run_dir).exists()
@@ -212,9 +218,9 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     if cfg.ray.workers > 0:
         from stepnft.rollout.ray_collector import RayCollector
 
-        collector = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, cfg.ray, num_threads=cfg.num_threads)
+        collector = RayCollector(cfg.env, policy_cfg.n_exec, cfg.seed, cfg.ray, num_threads=cfg.num_threads)
     else:
-        collector = Collector(make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed), seed=cfg.seed)
+        collector = Collector(make_vec_env(cfg.env, policy_cfg.n_exec, cfg.seed), seed=cfg.seed)
     stack.callback(collector.close)
     return run_dir, sim, tasks, collector
 
@@ -241,7 +247,7 @@ def _follow(cfg: TrainConfig) -> dict:
 def _init_policy(cfg: TrainConfig) -> Policy:
     """The ``--init`` policy, checked against the run's policy settings before anything is written."""
     policy = load_policy(cfg.init)
-    if policy.config != cfg.policy:
+    if policy.type == "flow" and policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
         raise ValueError(f"--init policy {cfg.init} was built with other policy settings than this run's: "
                          f"pass the same --policy.* flags it was trained with (see its config.json)")

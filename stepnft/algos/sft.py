@@ -12,7 +12,7 @@ import torch
 from tqdm.auto import tqdm
 
 from stepnft.losses import flow_matching_loss
-from stepnft.policies.base import Policy, make_policy
+from stepnft.policies.base import Policy, load_policy, make_policy
 from stepnft.policies.vision import random_shift
 from stepnft.sampling import flow_matching_pair, sample_flow_time
 
@@ -73,7 +73,7 @@ def sft_train(
     policy.train()
     for step in range(cfg.steps):
         idx = torch.randint(0, n, (min(cfg.batch_size, n),), generator=generator)
-        actions = data["actions"][idx]
+        actions = policy.model_actions(data["actions"][idx])
         t = sample_flow_time(len(idx), generator, cfg.time_law)
         noise = torch.randn(actions.shape, generator=generator)
         x_t, v_target = flow_matching_pair(actions, t, noise)
@@ -92,10 +92,12 @@ def sft_train(
 
 def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: list[str], max_episode_steps: int,
                    seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
-                   env_cfg=None) -> Policy:
+                   env_cfg=None, init: str | None = None) -> Policy:
     """The SFT stage of a run: demonstrations (generated into ``demos_cfg.path`` if it holds
     none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`. ``env_cfg``
-    (an ``EnvConfig``) gives the cameras to record and the state the policy sees."""
+    (an ``EnvConfig``) gives the cameras to record and the state the policy sees. With ``init``,
+    SFT fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder); its processor
+    keeps its statistics unless it has none."""
     from stepnft.data.demos import demo_cameras, demos_to_chunks, generate_demos, load_demos
 
     path = Path(demos_cfg.path)
@@ -122,11 +124,12 @@ def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: 
         raise ValueError(f"demonstrations in {path} have too few {'successful ' * demos_cfg.successful_only}episodes "
                          f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
                          "larger N, or point --demos.path at a new folder")
-    data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, policy_cfg.horizon,
+    policy = load_policy(init) if init else make_policy(policy_cfg)
+    data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, policy.config.horizon,
                            only_successful=demos_cfg.successful_only,
                            state_fn=lambda states: simulator.policy_state(states, state_obs), images=bool(cameras))
-    policy = make_policy(policy_cfg)
-    policy.processor.fit(data["obs"]["state"])
+    if init is None or getattr(policy.processor, "needs_fit", False):
+        policy.processor.fit(data["obs"]["state"])
     policy.processor.bind_instructions([simulator.instruction(t) for t in tasks], cache_dir)
     gen = torch.Generator().manual_seed(seed)
     bar = tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0)

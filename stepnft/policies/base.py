@@ -8,7 +8,10 @@ observations go through ``policy.processor`` first (normalisation, instruction l
 the network.
 
 Saved as ``config.json`` (with ``"type"``) + ``model.safetensors`` + ``processor.safetensors``;
-loading dispatches on ``type`` and never unpickles.
+loading dispatches on ``type`` and never unpickles. A policy saved in another layout (a LeRobot
+policy: ``stepnft.policies.lerobot``) overrides ``load_folder`` / ``save_pretrained``; one whose
+chunks live in another space than the env's actions (normalised, padded) overrides
+``env_actions`` / ``model_actions``.
 """
 
 from __future__ import annotations
@@ -33,6 +36,9 @@ PROCESSOR_NAME = "processor.safetensors"
 
 POLICY_TYPES: dict[str, str] = {
     "flow": "stepnft.policies.flow:FlowPolicy",
+    "smolvla": "stepnft.policies.lerobot.smolvla:SmolVLAAdapter",
+    "pi0": "stepnft.policies.lerobot.pi0:PI0Adapter",
+    "pi05": "stepnft.policies.lerobot.pi0:PI05Adapter",
 }
 """Registered policy classes by saved ``type`` (imported on first use). A new policy adds a line."""
 
@@ -42,11 +48,18 @@ def non_finite(tensors: dict[str, Tensor]) -> list[str]:
     return [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
+class PolicyUnavailable(ValueError):
+    """A registered policy type whose optional extra (e.g. LeRobot) is not installed here."""
+
+
 def policy_class(type_name: str) -> type["Policy"]:
     if type_name not in POLICY_TYPES:
         raise ValueError(f"unknown policy type {type_name!r}; known: {', '.join(POLICY_TYPES)}")
     module, cls = POLICY_TYPES[type_name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    try:
+        return getattr(importlib.import_module(module), cls)
+    except ImportError as err:  # an optional extra (e.g. LeRobot) is missing: say which, in one line
+        raise PolicyUnavailable(f"policy type {type_name!r}: {str(err).splitlines()[0]}") from err
 
 
 class Policy(nn.Module, ABC):
@@ -86,6 +99,15 @@ class Policy(nn.Module, ABC):
     def forward(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
         return self.velocity(obs, x_t, t)
 
+    def env_actions(self, chunk: Tensor) -> Tensor:
+        """Sampled chunk ``[..., H, A]`` -> the actions the env executes (a LeRobot policy
+        un-pads and un-normalises them); the identity here."""
+        return chunk
+
+    def model_actions(self, actions: Tensor) -> Tensor:
+        """Env actions -> the space the policy samples chunks in (the SFT target); the identity here."""
+        return actions
+
     @torch.no_grad()
     def sample(self, obs: dict[str, Tensor], noise_level: float = 0.0, generator: torch.Generator | None = None,
                stochastic_steps: str = "all", keep_path: bool = False) -> ChunkSample:
@@ -118,8 +140,8 @@ class Policy(nn.Module, ABC):
         """Load a saved policy of any registered type (or of ``cls``'s type when called on a
         subclass); a ValueError with one line if the folder is missing, corrupt or another type."""
         directory = Path(directory)
-        config_path, weights_path = directory / CONFIG_NAME, directory / WEIGHTS_NAME
-        if not config_path.is_file() or not weights_path.is_file():
+        config_path = directory / CONFIG_NAME
+        if not config_path.is_file():
             raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME} and {WEIGHTS_NAME}")
         try:
             data = json.loads(config_path.read_text())
@@ -129,25 +151,58 @@ class Policy(nn.Module, ABC):
             target = policy_class(type_name)
             if cls is not Policy and not issubclass(target, cls):
                 raise ValueError(f"it holds a {type_name!r} policy, not a {cls.type!r} one")
-            policy = target(target.config_class.from_dict(data))
-            weights = load_file(str(weights_path), device=map_location)
-            bad = non_finite(weights)
-            if bad:
-                raise ValueError(f"non-finite values in {', '.join(bad[:3])}")
-            processor_path = directory / PROCESSOR_NAME
-            if processor_path.is_file():
-                policy.processor.load_state_dict(load_file(str(processor_path)))
-            else:  # saved before processors existed: the statistics were model buffers
-                policy.processor.load_state_dict({k: weights.pop(k) for k in ("state_mean", "state_std")})
-            policy.load_state_dict(weights)
+            return target.load_folder(directory, data, map_location)
         except (ValueError, TypeError, KeyError, RuntimeError, OSError, SafetensorError, json.JSONDecodeError) as err:
+            if isinstance(err, (FileNotFoundError, PolicyUnavailable)):
+                raise
             raise ValueError(f"corrupt policy checkpoint at {directory}: {str(err).splitlines()[0]}") from err
+
+    @classmethod
+    def load_folder(cls, directory: Path, data: dict, map_location: str = "cpu") -> "Policy":
+        """This policy from its folder; ``data`` is its config.json without ``type``. A policy
+        saved in another layout (e.g. LeRobot's) overrides this and :meth:`save_pretrained`."""
+        weights_path = directory / WEIGHTS_NAME
+        if not weights_path.is_file():
+            raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME} and {WEIGHTS_NAME}")
+        policy = cls(cls.config_class.from_dict(data))
+        weights = load_file(str(weights_path), device=map_location)
+        bad = non_finite(weights)
+        if bad:
+            raise ValueError(f"non-finite values in {', '.join(bad[:3])}")
+        processor_path = directory / PROCESSOR_NAME
+        if processor_path.is_file():
+            policy.processor.load_state_dict(load_file(str(processor_path)))
+        else:  # saved before processors existed: the statistics were model buffers
+            policy.processor.load_state_dict({k: weights.pop(k) for k in ("state_mean", "state_std")})
+        policy.load_state_dict(weights)
         return policy
+
+    @classmethod
+    def read_config(cls, directory: Path):
+        """The config of the policy saved in ``directory``, without building the policy."""
+        data = json.loads((directory / CONFIG_NAME).read_text())
+        data.pop("type", None)
+        return cls.config_class.from_dict(data)
 
 
 def load_policy(directory: str | Path) -> Policy:
     """A saved policy of any registered type."""
     return Policy.from_pretrained(directory)
+
+
+def load_policy_config(directory: str | Path):
+    """The config of a saved policy of any registered type (its sizes, ``n_exec``), without
+    building it; a ValueError with one line if the folder holds no policy."""
+    directory = Path(directory)
+    if not (directory / CONFIG_NAME).is_file():
+        raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME}")
+    try:
+        type_name = json.loads((directory / CONFIG_NAME).read_text()).get("type", "flow")
+        return policy_class(type_name).read_config(directory)
+    except PolicyUnavailable:
+        raise
+    except (ValueError, OSError, AttributeError, TypeError, KeyError, json.JSONDecodeError) as err:
+        raise ValueError(f"corrupt policy checkpoint at {directory}: {str(err).splitlines()[0]}") from err
 
 
 def make_policy(config) -> Policy:

@@ -125,8 +125,8 @@ class Collector:
             sample = policy.sample(policy.processor(obs), noise_level=noise_level,
                                    generator=[generators[i] for i in playing],
                                    stochastic_steps=stochastic_steps, keep_path=keep_path)
-            chunk = np.zeros((n, n_exec, action_dim), dtype=np.float32)
-            chunk[playing] = sample.actions[:, :n_exec].clamp(-1.0, 1.0).numpy()
+            chunk = np.zeros((n, n_exec, policy.config.action_dim), dtype=np.float32)
+            chunk[playing] = policy.env_actions(sample.actions[:, :n_exec]).clamp(-1.0, 1.0).numpy()
             raw, reward, terminated, truncated, info = venv.step(chunk)
             executed = np.asarray(info["steps"])[playing]
             length[playing] += executed

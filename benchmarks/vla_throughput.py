@@ -1,0 +1,113 @@
+"""Throughput of SmolVLA behind stepnft: policy calls/s (Flow-SDE sampling of one chunk per
+call) and π-StepNFT update samples/s, for the tiny and the ~450 M configuration, with and
+without the prefix cache.
+
+With the cache (the default) a call encodes the vision-language prefix once and each of the K
+denoising steps runs the action expert against its keys and values; in the update (action
+expert trained, ``train: expert``) the prefix is encoded without gradients. Without it, every
+denoising step, and every update sample, runs the whole model, vision encoder included
+(SmolVLA's training forward). Models are randomly initialised from offline configurations (no
+download). Each figure is timed over ``--reps`` calls after one warm-up call.
+
+    .venv-lerobot/bin/python benchmarks/vla_throughput.py --out benchmarks/results/vla_throughput.json
+    .venv-lerobot/bin/python benchmarks/vla_throughput.py --sizes tiny --reps 2      # a quick check
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+SETTINGS = {
+    # size: (batch of a policy call, denoising steps K, chunk size, update samples, minibatch)
+    "tiny": dict(batch=8, num_steps=4, chunk_size=4, update_samples=64, minibatch=32),
+    "smolvla": dict(batch=1, num_steps=10, chunk_size=50, update_samples=4, minibatch=2),
+}
+
+
+def raw_obs(batch: int, size: int) -> dict:
+    g = torch.Generator().manual_seed(0)
+    return {"state": torch.randn(batch, 39, generator=g), "task": torch.zeros(batch, dtype=torch.int64),
+            "image": torch.randint(0, 256, (batch, 1, 3, size, size), dtype=torch.uint8, generator=g)}
+
+
+def timed(fn, reps: int) -> float:
+    """Seconds per call (one warm-up call first)."""
+    fn()
+    start = time.perf_counter()
+    for _ in range(reps):
+        fn()
+    return (time.perf_counter() - start) / reps
+
+
+def measure(size: str, reps: int, tmp: Path) -> dict:
+    from stepnft.algos.base import make_optimizer
+    from stepnft.algos.stepnft import StepNFTConfig, stepnft_update
+    from stepnft.batch import Batch
+    from stepnft.policies.lerobot.tiny import SIZES, NewSmolVLA, build_smolvla
+
+    s = SETTINGS[size]
+    image = SIZES[size]["vision"]["image_size"]
+    t0 = time.perf_counter()
+    policy = build_smolvla(NewSmolVLA(out="", size=size, chunk_size=s["chunk_size"], n_exec=s["chunk_size"],
+                                      num_steps=s["num_steps"], image_size=image), tmp / size)
+    built = time.perf_counter() - t0
+    policy.processor.bind_instructions(["open the drawer"])
+    params = sum(p.numel() for p in policy.parameters())
+    trained = sum(p.numel() for p in policy.parameters() if p.requires_grad)
+    out = {"parameters_M": params / 1e6, "trained_M": trained / 1e6, "build_s": built, **s}
+    for cache in (True, False):
+        policy.config = dataclasses.replace(policy.config, prefix_cache=cache)
+        label = "cache" if cache else "no_cache"
+        raw = raw_obs(s["batch"], image)
+        per_call = timed(lambda: policy.sample(policy.processor(raw), noise_level=0.2,
+                                               generator=torch.Generator().manual_seed(0)), reps)
+        out[f"calls_per_s_{label}"] = s["batch"] / per_call
+        print(size, f"calls_per_s_{label}", out[f"calls_per_s_{label}"], flush=True)
+        # One π-StepNFT epoch over `update_samples` recorded steps (one per call).
+        n = s["update_samples"]
+        raw = raw_obs(n, image)
+        sample = policy.sample(policy.processor(raw), noise_level=0.2, generator=torch.Generator().manual_seed(1))
+        h = s["chunk_size"]
+        batch = Batch(episode_success=torch.arange(n) % 2 == 0, episode_task=torch.zeros(n, dtype=torch.int64),
+                      episode_length=torch.full((n,), h), episode_seed=torch.arange(n), obs=raw, actions=sample.actions,
+                      mask=torch.ones(n, h, dtype=torch.bool), reward=torch.zeros(n), done=torch.ones(n, dtype=torch.bool),
+                      episode=torch.arange(n), call=torch.arange(n), x_t=sample.x_t, x_next=sample.x_next,
+                      v_old=sample.v_old, t=sample.t, dt=sample.dt)
+        cfg = StepNFTConfig(minibatch_size=s["minibatch"], update_epochs=1)
+        optimizer = make_optimizer([p for p in policy.parameters() if p.requires_grad], cfg)
+        per_update = timed(lambda: stepnft_update(policy, optimizer, batch, cfg, torch.Generator().manual_seed(0)),
+                           max(1, reps // 2))
+        out[f"update_samples_per_s_{label}"] = n / per_update
+        print(size, f"update_samples_per_s_{label}", out[f"update_samples_per_s_{label}"], flush=True)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", nargs="+", default=["tiny", "smolvla"], choices=list(SETTINGS))
+    parser.add_argument("--reps", type=int, default=3, help="timed repetitions after one warm-up")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", default=None, help="also write the figures as JSON here")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    results = {"torch": torch.__version__, "threads": args.threads, "machine": platform.processor() or platform.machine(),
+               "device": "cpu", "sizes": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes:
+            results["sizes"][size] = measure(size, args.reps, Path(tmp))
+            print(size, json.dumps(results["sizes"][size], indent=1), flush=True)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""``python -m stepnft.policies.lerobot new --out DIR [...]``: a new SmolVLA policy folder built on
+an offline VLM configuration (``stepnft.policies.lerobot.tiny``); ``vlm --out DIR --size tiny``
+writes only the VLM configuration (for ``SmolVLAConfig(vlm_model_name=DIR, load_vlm_weights=False)``)."""
+
+from __future__ import annotations
+
+import sys
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    usage = "usage: python -m stepnft.policies.lerobot {new,vlm} --out DIR [...]  (--help after the command)"
+    if not argv or argv[0] not in ("new", "vlm"):
+        print(usage, file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
+        return 0 if argv and argv[0] in ("-h", "--help") else 2
+    import tyro
+
+    from stepnft.policies.lerobot.tiny import NewSmolVLA, new_smolvla, write_vlm
+
+    try:
+        if argv[0] == "vlm":
+            from dataclasses import dataclass
+            from typing import Literal
+
+            @dataclass
+            class Vlm:
+                """Write an offline SmolVLM configuration folder."""
+                out: str
+                """Folder to write."""
+                size: Literal["tiny", "smolvla"] = "tiny"
+                """tiny, or smolvla (SmolVLA's real backbone architecture, no weights)."""
+
+            args = tyro.cli(Vlm, args=argv[1:], prog="python -m stepnft.policies.lerobot vlm")
+            print(f"wrote {write_vlm(args.out, args.size)}")
+        else:
+            spec = tyro.cli(NewSmolVLA, args=argv[1:], prog="python -m stepnft.policies.lerobot new")
+            policy = new_smolvla(spec)
+            total = sum(p.numel() for p in policy.parameters())
+            trained = sum(p.numel() for p in policy.parameters() if p.requires_grad)
+            print(f"wrote a new SmolVLA ({total / 1e6:.2f} M parameters, {trained / 1e6:.2f} M trained) to {spec.out}")
+    except ValueError as err:
+        print(f"error: {str(err).splitlines()[0]}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

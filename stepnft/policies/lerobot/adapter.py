@@ -1,0 +1,211 @@
+"""What every LeRobot flow VLA shares behind stepnft's :class:`~stepnft.policies.base.Policy`.
+
+LeRobot's flow VLAs use stepnft's flow convention exactly: ``x_t = t ε + (1 - t) x0`` with
+``t = 1`` pure noise, velocity target ``u = ε - x0``, and their sampler starts at ``t = 1`` and
+steps ``x ← x + dt v`` with ``dt = -1/K``, which is stepnft's Euler step ``x_{t-d} = x_t - d v``
+on the grid ``t_k = 1 - k/K``. So times and velocities pass through unchanged (no sign flip, no
+``1 - t``), and the ODE sampler reproduces LeRobot's ``sample_actions`` on the same noise.
+
+The chunk stepnft samples is the model's own: ``[chunk_size, max_action_dim]``, normalised and
+padded like LeRobot's (the padded dimensions start as noise and evolve with the model's
+velocity, as in ``sample_actions``; LeRobot's training loss covers them too, with target 0).
+:meth:`env_actions` turns it into the robot's actions (the first ``action_dim`` dimensions,
+un-normalised by LeRobot's post-processor); :meth:`model_actions` is the inverse for SFT targets.
+
+Subclasses give the model's prefix (``encode``: images, instruction and, for SmolVLA, the state,
+run once per call into the VLM's key/value cache), its denoising step against that cache
+(``denoise``), which modules the prefix depends on, and LeRobot's own training flags.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import io
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Callable, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from stepnft.policies.base import CONFIG_NAME, Policy, non_finite
+from stepnft.policies.lerobot import require_lerobot
+from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
+from stepnft.runs import write_atomic
+
+require_lerobot()
+
+from lerobot.configs.policies import PreTrainedConfig  # noqa: E402
+
+from stepnft.policies.lerobot.processor import LeRobotProcessor  # noqa: E402
+
+LEROBOT_DIR = "lerobot"
+VLM_DIR = "vlm"
+
+
+def lazy(target: str) -> Callable[[], Any]:
+    """``module:name`` imported when first called (LeRobot's policy modules are heavy)."""
+    module, name = target.split(":")
+    return lambda: getattr(importlib.import_module(module), name)
+
+
+@contextlib.contextmanager
+def quiet():
+    """LeRobot and transformers print progress lines while building; keep stdout for stepnft."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        yield
+
+
+class LeRobotFlowPolicy(Policy):
+    """A LeRobot flow VLA (``self.lerobot``) with LeRobot's pipelines as its processor."""
+
+    config_class = LeRobotPolicyConfig
+    lerobot_class: ClassVar[Callable[[], type]]
+    """The LeRobot policy class (imported on use)."""
+    make_pipelines: ClassVar[Callable[[], Callable]]
+    """LeRobot's ``make_*_pre_post_processors`` of the model (imported on use)."""
+
+    def __init__(self, config: LeRobotPolicyConfig, lerobot_policy: nn.Module, processor: LeRobotProcessor):
+        super().__init__(config)
+        self.processor = processor
+        self.lerobot = lerobot_policy
+        self.lerobot.config.use_cache = True  # the adapter's denoising loop reads the prefix cache
+        self.prefix_trainable = self.apply_train_scope()
+
+    @staticmethod
+    def make_processor(config) -> None:
+        """Built from the LeRobot folder instead (:class:`LeRobotProcessor`)."""
+        return None
+
+    # --- what a LeRobot model implements ----------------------------------------------------------
+    def prefix_modules(self) -> list[nn.Module]:
+        """The modules the cached prefix depends on (frozen with ``train: expert``)."""
+        raise NotImplementedError
+
+    def set_lerobot_train_flags(self, scope: str) -> None:
+        """Set LeRobot's own fine-tuning flags for ``scope`` and apply them (its set_requires_grad)."""
+        raise NotImplementedError
+
+    def robot_actions(self, actions: Tensor) -> Tensor:
+        """Model-specific output transform before un-normalisation (e.g. SmolVLA's Aloha adaptation)."""
+        return actions
+
+    def robot_actions_inverse(self, actions: Tensor) -> Tensor:
+        return actions
+
+    # --- trained parameters ---------------------------------------------------------------------
+    def apply_train_scope(self) -> bool:
+        """``requires_grad`` for ``config.train``; returns whether the prefix has trained parameters."""
+        self.lerobot.requires_grad_(True)
+        self.set_lerobot_train_flags(self.config.train)
+        prefix = self.prefix_modules()
+        if self.config.train == "expert":
+            for module in prefix:
+                module.requires_grad_(False)
+        return any(p.requires_grad for m in prefix for p in m.parameters())
+
+    # --- shapes and action spaces -----------------------------------------------------------------
+    @property
+    def chunk_shape(self) -> tuple[int, int]:
+        """The model's chunk: ``(chunk_size, max_action_dim)`` (see the module doc)."""
+        return self.lerobot.config.chunk_size, self.lerobot.config.max_action_dim
+
+    def env_actions(self, chunk: Tensor) -> Tensor:
+        """Model chunk ``[..., max_action_dim]`` -> robot actions ``[..., action_dim]`` (LeRobot's
+        un-padding and post-processor)."""
+        actions = self.robot_actions(chunk[..., : self.config.action_dim].clone())
+        return self.processor.unnormalize_actions(actions)
+
+    def model_actions(self, actions: Tensor) -> Tensor:
+        """Robot actions ``[..., action_dim]`` -> the model's normalised, padded chunk (SFT targets)."""
+        actions = self.robot_actions_inverse(self.processor.normalize_actions(actions).clone())
+        padded = actions.new_zeros((*actions.shape[:-1], self.lerobot.config.max_action_dim))
+        padded[..., : actions.shape[-1]] = actions
+        return padded
+
+    # --- save / load through LeRobot's own save_pretrained / from_pretrained ------------------------
+    def save_pretrained(self, directory: str | Path) -> Path:
+        """``config.json`` (stepnft's settings, ``"type"``), ``lerobot/`` (LeRobot's
+        save_pretrained with its processor pipelines) and ``vlm/`` (a local VLM configuration)."""
+        bad = non_finite(dict(self.state_dict()))
+        if bad:
+            raise ValueError(f"refusing to save a policy with non-finite values in {', '.join(bad[:3])}")
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        tmp = directory / f".{LEROBOT_DIR}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        with quiet():
+            self.lerobot.save_pretrained(tmp)
+        self.processor.save(tmp)
+        shutil.rmtree(directory / LEROBOT_DIR, ignore_errors=True)
+        os.replace(tmp, directory / LEROBOT_DIR)
+        vlm = Path(self.vlm_name())
+        if vlm.is_dir() and vlm.resolve() != (directory / VLM_DIR).resolve():
+            shutil.copytree(vlm, directory / VLM_DIR, dirs_exist_ok=True)
+        settings = self.config.to_dict() | {"lerobot": LEROBOT_DIR}
+        write_atomic(directory / CONFIG_NAME, json.dumps({"type": self.type, **settings}, indent=2))
+        return directory
+
+    def vlm_name(self) -> str:
+        """The VLM / tokenizer the LeRobot config names (a hub id or a local folder)."""
+        return self.lerobot.config.vlm_model_name
+
+    @classmethod
+    def read_config(cls, directory: Path) -> LeRobotPolicyConfig:
+        return LeRobotPolicyConfig.read(directory)
+
+    @classmethod
+    def load_folder(cls, directory: Path, data: dict, map_location: str = "cpu") -> "LeRobotFlowPolicy":
+        """A stepnft folder of this policy type, or a plain LeRobot folder (its own ``lerobot``)."""
+        settings = LeRobotPolicyConfig.from_dict(data) if "lerobot" in data else LeRobotPolicyConfig(lerobot=".")
+        lerobot_dir = directory / settings.lerobot
+        if not (lerobot_dir / "model.safetensors").is_file():
+            raise FileNotFoundError(f"no LeRobot policy at {lerobot_dir}: expected its config.json and model.safetensors")
+        lerobot_cfg = PreTrainedConfig.from_pretrained(lerobot_dir)
+        local_vlm = directory / VLM_DIR
+        policy = cls.build(settings, lerobot_cfg, lerobot_dir, str(local_vlm) if local_vlm.is_dir() else None,
+                           map_location)
+        bad = non_finite(dict(policy.state_dict()))
+        if bad:
+            raise ValueError(f"non-finite values in {', '.join(bad[:3])}")
+        return policy
+
+    @classmethod
+    def build(cls, settings: LeRobotPolicyConfig, lerobot_cfg, lerobot_dir: Path | None, vlm: str | None,
+              device: str = "cpu") -> "LeRobotFlowPolicy":
+        """The policy from LeRobot's config: weights and pipelines from ``lerobot_dir`` (None: a
+        new, randomly initialised model with fresh pipelines); ``vlm`` replaces the VLM folder
+        the config names (a moved or copied policy folder carries its own)."""
+        cls.prepare_lerobot_config(lerobot_cfg, vlm, device)
+        policy_class = cls.lerobot_class()
+        with quiet():
+            if lerobot_dir is None:
+                model = policy_class(lerobot_cfg)
+            else:
+                model = policy_class.from_pretrained(lerobot_dir, config=lerobot_cfg)
+        processor = LeRobotProcessor.create(lerobot_cfg, cls.make_pipelines(), lerobot_dir,
+                                            cls.processor_overrides(lerobot_cfg, device))
+        settings = settings.completed(lerobot_config_dict(lerobot_cfg))
+        return cls(settings, model, processor)
+
+    @classmethod
+    def prepare_lerobot_config(cls, lerobot_cfg, vlm: str | None, device: str) -> None:
+        """Adjust LeRobot's config before building (the VLM folder, the device)."""
+        lerobot_cfg.device = device
+
+    @classmethod
+    def processor_overrides(cls, lerobot_cfg, device: str) -> dict[str, Any]:
+        """Overrides of the saved pipelines' steps (by LeRobot's step names)."""
+        return {"device_processor": {"device": device}}
+
+
+def lerobot_config_dict(lerobot_cfg) -> dict:
+    """The fields of a LeRobot config that :meth:`LeRobotPolicyConfig.completed` reads."""
+    features = {k: {"shape": list(f.shape)} for k, f in {**lerobot_cfg.input_features,
+                                                          **lerobot_cfg.output_features}.items()}
+    return {"input_features": features, "n_action_steps": lerobot_cfg.n_action_steps,
+            "chunk_size": lerobot_cfg.chunk_size,
+            "num_steps": getattr(lerobot_cfg, "num_steps", getattr(lerobot_cfg, "num_inference_steps", 10))}

@@ -1,0 +1,125 @@
+"""π0 and π0.5 (LeRobot 0.4) behind stepnft's policy interface, the same shape as SmolVLA's.
+
+LeRobot 0.4.4 builds π0 / π0.5 only on a patched transformers (its ``PI0Pytorch`` checks for
+``transformers.models.siglip.check``), which the package registry does not carry: without it,
+building one raises :class:`PiUnavailable`, one line saying what is missing. stepnft patches no
+transformers internals. What is below follows LeRobot's ``sample_actions`` of each model and is
+exercised only where that transformers is installed (docs/lerobot.md).
+
+Their prefix cache is a transformers ``DynamicCache``, which a forward pass extends in place
+(with stock transformers every denoising step appends its suffix to it); each step here gets a
+fresh cache object over the prefix's key/value tensors, so every Flow-SDE step sees the prefix
+as it was encoded. In π0 the state enters the action expert's suffix, so with ``train: expert``
+its state projection is trained; in π0.5 the state is part of the instruction tokens.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from stepnft.policies.base import PolicyUnavailable
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
+
+from lerobot.policies.pi0.modeling_pi0 import make_att_2d_masks  # noqa: E402
+from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS  # noqa: E402
+
+MISSING_TRANSFORMERS = ("{name} in LeRobot 0.4.4 needs LeRobot's patched transformers (the module "
+                        "transformers.models.siglip.check, installed from LeRobot's own source instructions, not from "
+                        "the package registry); this environment has the registry's transformers {version}. SmolVLA "
+                        "needs no patch (type smolvla)")
+
+
+class PiUnavailable(PolicyUnavailable):
+    """π0 / π0.5 cannot be built: the patched transformers is missing."""
+
+
+def transformers_patched() -> bool:
+    """Whether LeRobot's patched transformers (needed by π0 / π0.5) is installed."""
+    try:
+        from transformers.models.siglip import check
+    except ImportError:
+        return False
+    return bool(check.check_whether_transformers_replace_is_installed_correctly())
+
+
+@dataclass
+class PiPrefix:
+    """One policy call's prefix: padding mask ``[B, L]``, its DynamicCache and (π0) the state."""
+
+    pad_masks: Tensor
+    past_key_values: object
+    state: Tensor | None = None
+
+
+class PI0Adapter(LeRobotFlowPolicy):
+    """LeRobot's π0 with stepnft owning the denoising loop."""
+
+    type = "pi0"
+    label = "π0"
+    state_in_suffix = True
+    lerobot_class = staticmethod(lazy("lerobot.policies.pi0.modeling_pi0:PI0Policy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.pi0.processor_pi0:make_pi0_pre_post_processors"))
+
+    @classmethod
+    def build(cls, settings, lerobot_cfg, lerobot_dir, vlm, device="cpu"):
+        if not transformers_patched():
+            import transformers
+
+            raise PiUnavailable(MISSING_TRANSFORMERS.format(name=cls.label, version=transformers.__version__))
+        return super().build(settings, lerobot_cfg, lerobot_dir, vlm, device)
+
+    @property
+    def model(self) -> nn.Module:
+        return self.lerobot.model
+
+    def vlm_name(self) -> str:
+        return ""  # the tokenizer is named in the processor pipelines; no local VLM folder to carry
+
+    def prefix_modules(self) -> list[nn.Module]:
+        return [self.model.paligemma_with_expert.paligemma]
+
+    def set_lerobot_train_flags(self, scope: str) -> None:
+        with_expert = self.model.paligemma_with_expert
+        self.lerobot.config.train_expert_only = with_expert.train_expert_only = scope != "vlm"
+        with_expert.freeze_vision_encoder = self.lerobot.config.freeze_vision_encoder
+        with_expert._set_requires_grad()
+
+    def _prefix_inputs(self, obs: dict[str, Tensor]) -> tuple:
+        images, img_masks = self.lerobot._preprocess_images(obs)
+        return images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK]
+
+    def encode(self, obs: dict[str, Tensor]) -> PiPrefix:
+        """The model's prefix (images, instruction) run once into its DynamicCache."""
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
+            embs, pad_masks, att_masks = self.model.embed_prefix(*self._prefix_inputs(obs))
+            masks_4d = self.model._prepare_attention_masks_4d(make_att_2d_masks(pad_masks, att_masks))
+            self.model.paligemma_with_expert.paligemma.language_model.config._attn_implementation = "eager"
+            _, cache = self.model.paligemma_with_expert.forward(
+                attention_mask=masks_4d, position_ids=torch.cumsum(pad_masks, dim=1) - 1, past_key_values=None,
+                inputs_embeds=[embs, None], use_cache=True)
+        state = self.lerobot.prepare_state(obs) if self.state_in_suffix else None
+        return PiPrefix(pad_masks, cache, state)
+
+    def _fresh_cache(self, cache):
+        """A new DynamicCache over the same prefix tensors: the step may extend it, not the prefix."""
+        return type(cache).from_legacy_cache(cache.to_legacy_cache())
+
+    def denoise(self, context: PiPrefix, x_t: Tensor, t: Tensor) -> Tensor:
+        cache = self._fresh_cache(context.past_key_values)
+        if self.state_in_suffix:
+            return self.model.denoise_step(state=context.state, prefix_pad_masks=context.pad_masks,
+                                           past_key_values=cache, x_t=x_t, timestep=t)
+        return self.model.denoise_step(prefix_pad_masks=context.pad_masks, past_key_values=cache, x_t=x_t, timestep=t)
+
+
+class PI05Adapter(PI0Adapter):
+    """LeRobot's π0.5 (the state is part of the instruction tokens, not the suffix)."""
+
+    type = "pi05"
+    label = "π0.5"
+    state_in_suffix = False
+    lerobot_class = staticmethod(lazy("lerobot.policies.pi05.modeling_pi05:PI05Policy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.pi05.processor_pi05:make_pi05_pre_post_processors"))

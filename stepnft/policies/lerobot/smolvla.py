@@ -1,0 +1,118 @@
+"""SmolVLA (LeRobot 0.4) behind stepnft's policy interface.
+
+``encode`` runs SmolVLA's own ``embed_prefix`` (images, instruction tokens, state) and fills the
+VLM's key/value cache (``fill_kv_cache=True``), once per policy call; ``denoise`` is SmolVLA's
+``denoise_step(prefix_pad_masks, past_key_values, x_t, timestep)``, which only reads that cache
+(``fill_kv_cache=False`` concatenates new tensors, the cache dict is left as it was), so every
+Flow-SDE step sees the unmodified prefix. Times and velocities need no conversion (see
+``stepnft.policies.lerobot.adapter``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
+
+from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
+from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
+
+
+@dataclass
+class SmolVLAPrefix:
+    """One policy call's prefix: its padding mask ``[B, L]`` and per-layer key/value cache; or,
+    without the cache, the processed observations the whole model re-reads at every step."""
+
+    pad_masks: Tensor | None = None
+    past_key_values: dict | None = None
+    obs: dict[str, Tensor] | None = None
+
+
+class SmolVLAAdapter(LeRobotFlowPolicy):
+    """LeRobot's SmolVLA with stepnft owning the denoising loop."""
+
+    type = "smolvla"
+    lerobot_class = staticmethod(lazy("lerobot.policies.smolvla.modeling_smolvla:SmolVLAPolicy"))
+    make_pipelines = staticmethod(lazy("lerobot.policies.smolvla.processor_smolvla:make_smolvla_pre_post_processors"))
+
+    @property
+    def model(self) -> nn.Module:
+        """SmolVLA's VLAFlowMatching."""
+        return self.lerobot.model
+
+    def prefix_modules(self) -> list[nn.Module]:
+        return [self.model.vlm_with_expert.vlm, self.model.state_proj]
+
+    def set_lerobot_train_flags(self, scope: str) -> None:
+        cfg, vlm_with_expert = self.lerobot.config, self.model.vlm_with_expert
+        cfg.train_expert_only = vlm_with_expert.train_expert_only = scope != "vlm"
+        cfg.train_state_proj = scope != "expert"
+        vlm_with_expert.freeze_vision_encoder = cfg.freeze_vision_encoder
+        vlm_with_expert.set_requires_grad()
+        self.model.set_requires_grad()
+
+    def robot_actions(self, actions: Tensor) -> Tensor:
+        return self.lerobot._pi_aloha_encode_actions(actions) if self.lerobot.config.adapt_to_pi_aloha else actions
+
+    def robot_actions_inverse(self, actions: Tensor) -> Tensor:
+        if self.lerobot.config.adapt_to_pi_aloha:
+            return self.lerobot._pi_aloha_encode_actions_inv(actions)
+        return actions
+
+    @classmethod
+    def prepare_lerobot_config(cls, lerobot_cfg, vlm: str | None, device: str) -> None:
+        super().prepare_lerobot_config(lerobot_cfg, vlm, device)
+        if vlm is not None:
+            lerobot_cfg.vlm_model_name = vlm
+        # Every weight comes from the checkpoint: never fetch the VLM's pretrained weights first.
+        lerobot_cfg.load_vlm_weights = False
+
+    @classmethod
+    def processor_overrides(cls, lerobot_cfg, device: str) -> dict:
+        return super().processor_overrides(lerobot_cfg, device) | {
+            "tokenizer_processor": {"tokenizer_name": lerobot_cfg.vlm_model_name}}
+
+    # --- the prefix, once per policy call -----------------------------------------------------------
+    def _embed_prefix(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """SmolVLA's prefix embeddings, padding and attention masks of processed ``obs``."""
+        if self.lerobot.config.adapt_to_pi_aloha:
+            obs = obs | {OBS_STATE: self.lerobot._pi_aloha_decode_state(obs[OBS_STATE].clone())}
+        images, img_masks = self.lerobot.prepare_images(obs)
+        return self.model.embed_prefix(images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK],
+                                       state=self.lerobot.prepare_state(obs))
+
+    def encode(self, obs: dict[str, Tensor]) -> SmolVLAPrefix:
+        """SmolVLA's prefix of processed ``obs`` run into its key/value cache (no gradients unless
+        prefix parameters are trained); without the cache, nothing is computed here."""
+        if not self.config.prefix_cache:
+            return SmolVLAPrefix(obs=obs)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
+            embs, pad_masks, att_masks = self._embed_prefix(obs)
+            _, past_key_values = self.model.vlm_with_expert.forward(
+                attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
+                past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
+        return SmolVLAPrefix(pad_masks, past_key_values)
+
+    # --- the action expert, once per denoising step ------------------------------------------------
+    def denoise(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
+        """SmolVLA's ``denoise_step`` at ``x_t`` ``[B, chunk_size, max_action_dim]``, ``t`` ``[B]``."""
+        if context.obs is None:
+            return self.model.denoise_step(prefix_pad_masks=context.pad_masks, past_key_values=context.past_key_values,
+                                           x_t=x_t, timestep=t)
+        return self._joint_velocity(context.obs, x_t, t)
+
+    def _joint_velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
+        """The whole model in one pass, vision included (SmolVLA's training forward): no cache."""
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
+            prefix_embs, prefix_pad, prefix_att = self._embed_prefix(obs)
+        suffix_embs, suffix_pad, suffix_att = self.model.embed_suffix(x_t, t)
+        pad_masks = torch.cat([prefix_pad, suffix_pad], dim=1)
+        att_masks = torch.cat([prefix_att, suffix_att], dim=1)
+        (_, suffix_out), _ = self.model.vlm_with_expert.forward(
+            attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
+            past_key_values=None, inputs_embeds=[prefix_embs, suffix_embs], use_cache=False, fill_kv_cache=False)
+        suffix_out = suffix_out[:, -self.lerobot.config.chunk_size:].to(dtype=torch.float32)
+        return self.model.action_out_proj(suffix_out)

@@ -1,0 +1,309 @@
+"""LeRobot SmolVLA behind stepnft's policy interface (stepnft.policies.lerobot).
+
+Runs in the LeRobot environment (`bash scripts/bootstrap.sh --lerobot`, then
+`.venv-lerobot/bin/python -m pytest tests/policies/test_lerobot.py`); elsewhere the SmolVLA tests
+skip with the reason, and the tests that need no LeRobot check that stepnft does not import it
+and that a SmolVLA folder gives one line saying what is missing.
+"""
+
+import importlib.util
+import json
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from stepnft.envs.bandit import Bandit, BanditChunkEnv
+
+HAVE_LEROBOT = importlib.util.find_spec("lerobot") is not None
+needs_lerobot = pytest.mark.skipif(not HAVE_LEROBOT, reason="LeRobot is not installed: these tests run in the LeRobot "
+                                   "environment (bash scripts/bootstrap.sh --lerobot; scripts/run-tests.sh runs them)")
+IMAGE = 16
+
+
+def test_importing_stepnft_does_not_import_lerobot():
+    code = ("import sys, stepnft, stepnft.cli, stepnft.train, stepnft.policies.base, stepnft.policies.lerobot, "
+            "stepnft.policies.lerobot.configuration; assert 'lerobot' not in sys.modules, 'lerobot imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.skipif(HAVE_LEROBOT, reason="checks the message given where LeRobot is missing")
+def test_a_smolvla_folder_without_lerobot_is_one_line(tmp_path):
+    from stepnft.policies.base import load_policy
+
+    (tmp_path / "config.json").write_text(json.dumps({"type": "smolvla", "lerobot": "lerobot"}))
+    with pytest.raises(ValueError, match="policy type 'smolvla': LeRobot is not installed.*bootstrap.sh --lerobot"):
+        load_policy(tmp_path)
+
+
+# --- a bandit with a synthetic camera image (the context painted into two channels) ------------
+class ImageBanditEnv(gym.Wrapper):
+    """The bandit with an ``image`` uint8 [1, 3, 16, 16] observation: channel k holds context k."""
+
+    def __init__(self, env: BanditChunkEnv):
+        super().__init__(env)
+        self.observation_space = gym.spaces.Dict({**env.observation_space.spaces,
+                                                  "image": gym.spaces.Box(0, 255, (1, 3, IMAGE, IMAGE), np.uint8)})
+
+    @staticmethod
+    def painted(obs):
+        image = np.zeros((1, 3, IMAGE, IMAGE), dtype=np.uint8)
+        image[0, :2] = np.round((obs["state"][:, None, None] + 1) * 127.5).astype(np.uint8)
+        return obs | {"image": image}
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return self.painted(obs), info
+
+    def step(self, action):
+        obs, *rest = self.env.step(action)
+        return self.painted(obs), *rest
+
+
+class ImageBandit(Bandit):
+    name = "bandit-image"
+
+    def make_env(self, task, n_exec=2, max_episode_steps=2, terminate_on_success=True, seed=0, render_size=None):
+        return ImageBanditEnv(super().make_env(task, n_exec, max_episode_steps, terminate_on_success, seed))
+
+
+def raw_obs(batch: int, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    state = torch.rand(batch, 2, generator=g) * 2 - 1
+    image = torch.as_tensor(np.stack([ImageBanditEnv.painted({"state": s.numpy()})["image"] for s in state]))
+    return {"state": state, "task": torch.zeros(batch, dtype=torch.int64), "image": image}
+
+
+@pytest.fixture(scope="module")
+def tiny_folder(tmp_path_factory):
+    """A new tiny SmolVLA for the bandit (2-d state and actions, chunks of 2, 3 denoising steps)."""
+    if not HAVE_LEROBOT:
+        pytest.skip("LeRobot is not installed")
+    from stepnft.policies.lerobot.tiny import NewSmolVLA, new_smolvla
+
+    folder = tmp_path_factory.mktemp("smolvla") / "policy"
+    new_smolvla(NewSmolVLA(out=str(folder), state_dim=2, action_dim=2, chunk_size=2, n_exec=2, num_steps=3,
+                           cameras=["synthetic"], image_size=IMAGE))
+    return folder
+
+
+def load(folder, **settings):
+    from stepnft.policies.base import load_policy
+
+    policy = load_policy(folder)
+    if settings:  # another train scope / cache setting: rebuild through the same loader
+        data = json.loads((folder / "config.json").read_text()) | settings
+        policy = type(policy).load_folder(folder, {k: v for k, v in data.items() if k != "type"})
+    policy.processor.bind_instructions(["put every action of the chunk on the target"])
+    return policy
+
+
+@needs_lerobot
+def test_the_ode_loop_equals_lerobots_sample_actions(tiny_folder):
+    policy = load(tiny_folder)
+    obs = policy.processor(raw_obs(5))
+    sample = policy.sample(obs, noise_level=0.0, generator=torch.Generator().manual_seed(3))
+    noise = torch.randn((5, *policy.chunk_shape), generator=torch.Generator().manual_seed(3))
+    lerobot = policy.lerobot
+    images, img_masks = lerobot.prepare_images(obs)
+    with torch.no_grad():
+        reference = lerobot.model.sample_actions(images, img_masks, obs["observation.language.tokens"],
+                                                 obs["observation.language.attention_mask"], lerobot.prepare_state(obs),
+                                                 noise=noise)
+    torch.testing.assert_close(sample.actions, reference, rtol=0, atol=1e-6)
+    # ... and so does LeRobot's whole select path (pre-processor -> predict -> post-processor)
+    with torch.no_grad():
+        chunk = lerobot.predict_action_chunk(policy.processor(raw_obs(5)), noise=noise)
+    torch.testing.assert_close(policy.env_actions(sample.actions), policy.processor.unnormalize_actions(chunk))
+
+
+@needs_lerobot
+def test_the_prefix_cache_is_unchanged_by_a_flow_sde_loop(tiny_folder):
+    from stepnft.sampling import sample_chunk
+
+    policy = load(tiny_folder)
+    with torch.no_grad():
+        context = policy.encode(policy.processor(raw_obs(4)))
+        before = {layer: {k: (v, v.clone()) for k, v in kv.items()} for layer, kv in context.past_key_values.items()}
+        sample_chunk(lambda x, t: policy.denoise(context, x, t), (4, *policy.chunk_shape), num_steps=3,
+                     noise_level=0.5, generator=torch.Generator().manual_seed(0))
+    assert context.past_key_values.keys() == before.keys()
+    for layer, kv in context.past_key_values.items():
+        for key, tensor in kv.items():
+            original, copy = before[layer][key]
+            assert tensor is original and torch.equal(tensor, copy), (layer, key)
+
+
+@needs_lerobot
+def test_flow_sde_steps_match_stepnfts_sampler(tiny_folder):
+    """Every step of a rollout is N(mean, std²) of sde_step_mean_std at the adapter's velocity."""
+    from stepnft.sampling import sde_step_mean_std
+
+    policy = load(tiny_folder)
+    obs = policy.processor(raw_obs(256))
+    noise_level, steps = 0.7, policy.config.num_inference_steps
+    sample = policy.sample(obs, noise_level=noise_level, generator=torch.Generator().manual_seed(1), keep_path=True)
+    with torch.no_grad():
+        context = policy.encode(obs)
+        for k in range(steps):
+            t = torch.full((256,), 1.0 - k / steps)
+            v = policy.denoise(context, sample.path_x[:, k], t)
+            torch.testing.assert_close(v, sample.path_v[:, k])
+            mean, std = sde_step_mean_std(sample.path_x[:, k], v, t, torch.full((256,), 1.0 / steps), noise_level)
+            z = (sample.path_x[:, k + 1] - mean) / std
+            assert abs(float(z.mean())) < 0.1 and abs(float(z.std()) - 1.0) < 0.1, (k, z.mean(), z.std())
+    picked = sample.step
+    torch.testing.assert_close(sample.x_t, sample.path_x[torch.arange(256), picked])
+    torch.testing.assert_close(sample.v_old, sample.path_v[torch.arange(256), picked])
+
+
+@needs_lerobot
+def test_cached_and_joint_velocities_agree(tiny_folder):
+    cached, joint = load(tiny_folder), load(tiny_folder, prefix_cache=False)
+    obs = cached.processor(raw_obs(3))
+    x, t = torch.randn(3, *cached.chunk_shape), torch.tensor([1.0, 0.5, 0.2])
+    with torch.no_grad():
+        torch.testing.assert_close(cached.velocity(obs, x, t), joint.velocity(obs, x, t), rtol=1e-4, atol=1e-5)
+
+
+def rollout_batch(policy, calls: int = 16):
+    """A Batch of Flow-SDE samples from ``policy`` with half the episodes successful."""
+    from stepnft.batch import Batch
+
+    raw = raw_obs(calls)
+    sample = policy.sample(policy.processor(raw), noise_level=0.5, generator=torch.Generator().manual_seed(0),
+                           keep_path=True)
+    steps = sample.all_steps()
+    steps["call"] = steps.pop("sample")
+    horizon = policy.chunk_shape[0]
+    return Batch(episode_success=torch.arange(calls) % 2 == 0, episode_task=torch.zeros(calls, dtype=torch.int64),
+                 episode_length=torch.full((calls,), horizon), episode_seed=torch.arange(calls), obs=raw,
+                 actions=sample.actions, mask=torch.ones(calls, horizon, dtype=torch.bool), reward=torch.zeros(calls),
+                 done=torch.ones(calls, dtype=torch.bool), episode=torch.arange(calls), **steps)
+
+
+@needs_lerobot
+@pytest.mark.parametrize("scope", ["expert", "expert+state"])
+def test_a_stepnft_update_changes_only_the_trained_parameters(tiny_folder, scope):
+    from stepnft.algos.base import make_optimizer
+    from stepnft.algos.stepnft import StepNFTConfig, stepnft_update
+    from stepnft.ema import make_ema_copy
+
+    policy = load(tiny_folder, train=scope)
+    assert policy.prefix_trainable == (scope != "expert")
+    ema = make_ema_copy(policy)  # the rollout copy shares the frozen VLM instead of copying it
+    assert ema.lerobot.model.vlm_with_expert.vlm is policy.lerobot.model.vlm_with_expert.vlm
+    batch = rollout_batch(ema)
+    before = {n: p.detach().clone() for n, p in policy.named_parameters()}
+    cfg = StepNFTConfig(lr=1e-3, minibatch_size=16, update_epochs=1, max_drift=None, label_balance="none",
+                        episode_weighting=False)
+    metrics = stepnft_update(policy, make_optimizer(policy.parameters(), cfg), batch, cfg,
+                             torch.Generator().manual_seed(0))
+    assert metrics["losses/update_steps"] > 0 and metrics["losses/skipped_nonfinite"] == 0
+    changed = {n for n, p in policy.named_parameters() if not torch.equal(p, before[n])}
+    trained = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert changed and changed <= trained
+    assert any("action_out_proj" in n for n in changed) and any("lm_expert" in n for n in changed)
+    assert not any(".vlm." in n for n in changed)
+    assert any("state_proj" in n for n in changed) == (scope == "expert+state")
+
+
+@needs_lerobot
+def test_save_load_round_trip_gives_the_same_actions(tiny_folder, tmp_path):
+    from stepnft.algos.sft import SFTConfig, sft_train
+    from stepnft.policies.base import load_policy
+
+    policy = load(tiny_folder)
+    raw = raw_obs(64, seed=5)
+    actions = torch.rand(64, 2, 2) * 0.5
+    policy.processor.fit(raw["state"], actions)  # statistics travel in LeRobot's pipelines
+    sft_train(policy, {"obs": raw, "actions": actions, "mask": torch.ones(64, 2, dtype=torch.bool)},
+              SFTConfig(steps=3, batch_size=16), torch.Generator().manual_seed(0))
+    policy.save_pretrained(tmp_path / "saved")
+    # LeRobot's own files: a LeRobot user loads lerobot/ with SmolVLAPolicy.from_pretrained
+    assert {"config.json", "model.safetensors", "policy_preprocessor.json",
+            "policy_postprocessor.json"} <= {p.name for p in (tmp_path / "saved" / "lerobot").iterdir()}
+    loaded = load_policy(tmp_path / "saved")
+    loaded.processor.bind_instructions(policy.processor.instructions)
+    assert loaded.config == policy.config
+    for a, b in ((policy, loaded),):
+        x = a.sample(a.processor(raw), generator=torch.Generator().manual_seed(2)).actions
+        y = b.sample(b.processor(raw), generator=torch.Generator().manual_seed(2)).actions
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+        torch.testing.assert_close(a.env_actions(x), b.env_actions(y), rtol=0, atol=0)
+    # the robot's actions are LeRobot's un-normalised ones, and model_actions inverts them
+    stats = policy.processor.stats["action"]
+    expected = x[..., :2] * torch.tensor(stats["std"]) + torch.tensor(stats["mean"])
+    torch.testing.assert_close(policy.env_actions(x), expected)
+    torch.testing.assert_close(policy.model_actions(policy.env_actions(x)), x, rtol=1e-5, atol=1e-5)
+
+
+@needs_lerobot
+def test_a_plain_lerobot_folder_loads_as_is(tiny_folder, tmp_path):
+    """What LeRobot itself saves (config.json with its "type", weights, pipelines) is a policy."""
+    from stepnft.policies.base import load_policy
+
+    policy = load(tiny_folder)
+    plain = tmp_path / "plain"
+    policy.lerobot.save_pretrained(plain)
+    policy.processor.save(plain)
+    loaded = load_policy(plain)
+    assert loaded.type == "smolvla" and loaded.config.lerobot == "." and loaded.config.n_exec == 2
+    loaded.processor.bind_instructions(policy.processor.instructions)
+    raw = raw_obs(3)
+    x = policy.sample(policy.processor(raw), generator=torch.Generator().manual_seed(0)).actions
+    y = loaded.sample(loaded.processor(raw), generator=torch.Generator().manual_seed(0)).actions
+    torch.testing.assert_close(x, y)
+
+
+@needs_lerobot
+def test_processor_errors_are_one_line(tiny_folder):
+    policy = load(tiny_folder)
+    raw = raw_obs(2)
+    with pytest.raises(ValueError, match="sees camera images"):
+        policy.processor({k: v for k, v in raw.items() if k != "image"})
+    with pytest.raises(ValueError, match="takes 2-d states, the env gives 3-d"):
+        policy.processor(raw | {"state": torch.zeros(2, 3)})
+
+
+@needs_lerobot
+def test_pi0_and_pi05_say_what_is_missing():
+    from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
+    from stepnft.policies.lerobot.pi0 import PI0Adapter, PI05Adapter, PiUnavailable, transformers_patched
+
+    if transformers_patched():
+        pytest.skip("LeRobot's patched transformers is installed: π0 builds here")
+    from lerobot.policies.pi0.configuration_pi0 import PI0Config
+    from lerobot.policies.pi05.configuration_pi05 import PI05Config
+
+    for adapter, config in ((PI0Adapter, PI0Config), (PI05Adapter, PI05Config)):
+        with pytest.raises(PiUnavailable, match="patched transformers") as err:
+            adapter.build(LeRobotPolicyConfig(), config(device="cpu"), None, None)
+        assert "\n" not in str(err.value)
+
+
+@needs_lerobot
+@pytest.mark.slow
+def test_train_from_the_cli_and_resume(tiny_folder, tmp_path, monkeypatch, capsys):
+    """`stepnft train --init <SmolVLA folder>` on the image bandit, checkpoints, resume.
+    (`stepnft sft --init` needs demonstrations that hold images: the camera observations' demos.)"""
+    from stepnft.cli import main
+    from stepnft.envs import SIMULATORS, SimulatorInfo
+    from stepnft.policies.base import load_policy
+
+    monkeypatch.setitem(SIMULATORS, "bandit-image", SimulatorInfo(f"{__name__}:ImageBandit", 64, ("bandit",)))
+    argv = ["train", "--init", tiny_folder, "--run-dir", tmp_path / "rl", "--iterations", "2",
+            "--episodes-per-iteration", "8", "--eval.every", "1", "--checkpoint-every", "1", "--algo.minibatch-size", "8",
+            "--env.name", "bandit-image", "--env.tasks", "bandit", "--env.envs-per-task", "8",
+            "--env.max-episode-steps", "2", "--eval.episodes", "8", "--eval.during-episodes", "8", "--eval.seed", "100"]
+    assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "rl" / "summary.json").read_text())
+    assert summary["iterations"] == 2 and summary["env_steps"] > 0
+    records = [json.loads(line) for line in (tmp_path / "rl" / "metrics.jsonl").read_text().splitlines()]
+    assert any(r.get("losses/update_steps", 0) > 0 for r in records)
+    final = load_policy(tmp_path / "rl" / "policy")
+    assert final.type == "smolvla" and (tmp_path / "rl" / "checkpoints" / "LATEST").is_file()
+    assert main(["train", "--resume", str(tmp_path / "rl")]) == 0  # finished: resumes to the same end
