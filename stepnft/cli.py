@@ -121,7 +121,7 @@ def _describe(cls) -> str:
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
                 " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
-                " the last checkpoint of a run; it takes no other flags than --ray.*).")
+                " the last checkpoint of a run; it takes no other flags than --ray.* and --device).")
     return doc
 
 
@@ -157,19 +157,19 @@ def _train_config_from_argv(argv: list[str], prog: str, allow_resume: bool, base
     known, rest = pre.parse_known_args(argv)
     resume = getattr(known, "resume", None)
     if resume and not any(a in ("-h", "--help") for a in rest):
-        if (rest and not rest[0].startswith("--ray.")) or known.config:
+        if (rest and not rest[0].startswith(("--ray.", "--device"))) or known.config:
             extra = " ".join(rest + (["--config", known.config] if known.config else []))
             raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags "
-                             f"than --ray.*; drop: {extra}")
+                             f"than --ray.* and --device; drop: {extra}")
         cfg_path = Path(resume) / "config.yaml"
         if not cfg_path.is_file():
             raise UsageError(f"cannot resume {resume}: no config.yaml there (is it a stepnft run directory?)")
         cfg = load_config(cfg_path)
         cfg.run_dir = resume  # the folder may have been moved or copied since it was written
-        if rest:  # --ray.* flags say where rollouts run, not what they are: a run may resume elsewhere
+        if rest:  # --ray.* and --device say where a run computes, not what: a run may resume elsewhere
             parsed = _parse(TrainConfig, rest, cfg, prog)
-            if dataclasses.replace(parsed, ray=cfg.ray) != cfg:
-                raise UsageError(f"--resume takes no other flags than --ray.*; drop: {' '.join(rest)}")
+            if dataclasses.replace(parsed, ray=cfg.ray, device=cfg.device) != cfg:
+                raise UsageError(f"--resume takes no other flags than --ray.* and --device; drop: {' '.join(rest)}")
             cfg = parsed
         return cfg, True
     base = load_config(known.config) if known.config else (base or TrainConfig())
@@ -228,12 +228,14 @@ def cmd_eval(argv: list[str]) -> int:
                                 record_suite_videos)
 
     from stepnft.config import EvalCommand
+    from stepnft.devices import resolve_device
 
     args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
+    device = resolve_device(args.device)
     sim = get_simulator(args.env.name)
     args.env.tasks = sim.validate_tasks(args.env.tasks)
     suites = check_suites(args.suite)
-    policy = load_policy(args.policy)
+    policy = load_policy(args.policy).to(device)
     # Fail on an unwritable output before spending time on episodes.
     out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
     video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None

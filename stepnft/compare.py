@@ -166,7 +166,8 @@ def suite_job(cmd: CompareCommand, job: Job, out: Path) -> Job:
     run_dir = out / "suites" / row / f"seed{job.config.seed}"
     argv = ["eval", "--policy", str(job.run_dir / "policy"), "--suite", *cmd.suites,
             "--eval.episodes", str(cmd.suite_episodes), "--eval.seed", str(job.config.eval.seed),
-            "--out", str(run_dir / "suites.json"), *env_flags(job.config.env)]
+            "--out", str(run_dir / "suites.json"), *env_flags(job.config.env),
+            *(["--device", job.config.device] if job.config.device != "cpu" else [])]
     return Job(f"suites_{row}_seed{job.config.seed}", "eval", run_dir, argv)
 
 

@@ -22,6 +22,7 @@ import yaml
 from stepnft.algos.base import AlgoConfig, config_class
 from stepnft.algos.sft import SFTConfig
 from stepnft.algos.stepnft import StepNFTConfig
+from stepnft.devices import check_device_name
 from stepnft.envs import DEFAULT_TASKS, SIMULATORS
 from stepnft.envs.perturbations import FAMILY, expand
 from stepnft.policies.flow import FlowPolicyConfig
@@ -207,6 +208,11 @@ class TrainConfig:
     """Iterations between checkpoints (the last one is always written)."""
     num_threads: int = 1
     """torch CPU threads (the policy is small: one thread is fastest, and leaves a core to the simulator)."""
+    device: str = "cpu"
+    """Where the policy, its EMA copy, PPO's critic and the optimizer state live and compute: cpu,
+    cuda or cuda:N (docs/gpu.md). Simulators, observation processing, rollout batches, checkpoints
+    and all random generators stay on the CPU, so a CUDA run draws the same noise as a CPU run.
+    A resumed run may change it (``--resume RUN --device cuda``)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
     policy: FlowPolicyConfig = field(default_factory=FlowPolicyConfig)
@@ -224,12 +230,13 @@ class TrainConfig:
             "env_step_budget": self.env_step_budget is None or self.env_step_budget >= 1,
             "allocation_floor": 0 <= self.allocation_floor <= 1,
             "task_allocation": self.task_allocation in ("equal", "informative"),
+            "device": check_device_name(self.device),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"{bad[0]}={getattr(self, bad[0])!r} is invalid: iterations must be >= 0, "
                              "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1, "
-                             "allocation_floor in [0, 1]")
+                             "allocation_floor in [0, 1], device cpu, cuda or cuda:N")
         if self.policy.cameras != self.env.cameras:
             raise ValueError(f"policy.cameras {self.policy.cameras} differ from env.cameras {self.env.cameras}: "
                              "give both the same list (e.g. --config configs/image.yaml)")
@@ -260,12 +267,16 @@ class EvalCommand:
     """Evaluation suites: ind (the training distribution), vision, semantic, execution (held-out
     perturbations, docs/ood.md); several give a table with the OOD average. The env's cameras
     and state observation follow the policy."""
+    device: str = "cpu"
+    """Where the policy samples: cpu, cuda or cuda:N (simulators and noise stay on the CPU)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
     def __post_init__(self) -> None:
         if self.video_episodes < 1:
             raise ValueError(f"video_episodes must be >= 1, got {self.video_episodes}")
+        if not check_device_name(self.device):
+            raise ValueError(f"device={self.device!r} is invalid: use cpu, cuda or cuda:N")
 
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 from stepnft.rollout.collector import Collector
 
@@ -186,7 +187,7 @@ def _play_filmed(policy: Policy, env, task_index: int, seed: int,
     while not done:
         raw = {k: torch.as_tensor(np.asarray(v)[None]) for k, v in obs.items()} | {"task": torch.tensor([task_index])}
         seen = obs.get("image")
-        sample = policy.sample(policy.processor(raw), noise_level=0.0, generator=generator)
+        sample = to_device(policy.sample(policy.prepare(raw), noise_level=0.0, generator=generator), "cpu")
         for action in policy.env_actions(sample.actions[0, : policy.config.n_exec]).clamp(-1.0, 1.0).numpy():
             obs, _, terminated, truncated, info = env.step(action[None])
             frames.append(_beside(env.render(), seen))

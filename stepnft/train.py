@@ -27,6 +27,7 @@ from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_from_demos
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
+from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import RenderingError
 from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks_below
@@ -48,13 +49,13 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         evaluate = _evaluator(collector)
         if resume:
             ckpt = load_checkpoint(run_dir)
-            policy, state = ckpt["policy"], ckpt["state"]
+            policy, state = ckpt["policy"].to(cfg.device), ckpt["state"]
         else:
             policy = _init_policy(cfg) if cfg.init else None
             mark_run(run_dir, "train")
             save_config(cfg, run_dir / "config.yaml")
             policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
-                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env)
+                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env, device=cfg.device)
             policy.save_pretrained(run_dir / "sft_policy")
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
@@ -135,7 +136,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
             best_after = after
             shutil.copytree(run_dir / "policy", run_dir / "best_policy", dirs_exist_ok=True)
         else:
-            best_policy = load_policy(run_dir / "best_policy")
+            best_policy = load_policy(run_dir / "best_policy").to(cfg.device)
             best_policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
             best_after = evaluate(best_policy, cfg.eval.episodes, cfg.eval.seed)
         logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after, "test")})
@@ -171,7 +172,7 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init)
+                                run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init, device=cfg.device)
         policy.save_pretrained(run_dir / "policy")
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
@@ -186,6 +187,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     with ``stack`` on every exit path). A folder this call creates is removed again if the run
     fails before its first checkpoint (or, for SFT, before it finishes), and an empty one is
     emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
+    resolve_device(cfg.device)  # before anything is created: no CUDA here is one line, exit code 2
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
     state_dim = sim.state_dim_for(cfg.env.state_obs)
@@ -231,6 +233,7 @@ def _follow(cfg: TrainConfig) -> dict:
     try:
         torch.set_num_threads(cfg.num_threads)
         policy, state, generator_state = distributed.broadcast()
+        policy = policy.to(cfg.device)  # "cuda": this process's GPU (stepnft.distributed.init)
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator())
         algo.load_state_dict(state)
         algo.generator.set_state(generator_state)
@@ -246,7 +249,7 @@ def _follow(cfg: TrainConfig) -> dict:
 
 def _init_policy(cfg: TrainConfig) -> Policy:
     """The ``--init`` policy, checked against the run's policy settings before anything is written."""
-    policy = load_policy(cfg.init)
+    policy = load_policy(cfg.init).to(cfg.device)
     if policy.type == "flow" and policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
         raise ValueError(f"--init policy {cfg.init} was built with other policy settings than this run's: "

@@ -199,7 +199,7 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     assert "holds an SFT run, not a training run" in line
 
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
-    assert "takes no other flags than --ray.*; drop: --iterations 9" in line
+    assert "takes no other flags than --ray.* and --device; drop: --iterations 9" in line
 
 
 def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):

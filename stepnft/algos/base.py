@@ -21,8 +21,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import torch
+from torch import Tensor, nn
 
 from stepnft.batch import Batch
+from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 
 ALGORITHMS: dict[str, str] = {
@@ -137,6 +139,13 @@ class NonFiniteGuard:
 def make_optimizer(params, cfg: AlgoConfig) -> torch.optim.Optimizer:
     """AdamW with every setting from the config."""
     return torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps, weight_decay=cfg.weight_decay)
+
+
+def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor) -> Tensor:
+    """The learner's velocity ``[R, H, A]`` at recorded steps ``rows`` of ``batch`` (which stays
+    on the CPU): their observations processed on the CPU, the forward pass on the policy's device."""
+    x_t, t = to_device((batch.x_t[rows], batch.t[rows]), policy.device)
+    return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
 
 
 class Algorithm(ABC):

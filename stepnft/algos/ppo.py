@@ -17,8 +17,9 @@ from typing import Any, Callable, Literal
 import torch
 from torch import Tensor, nn
 
-from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer, step_velocity
 from stepnft.batch import Batch
+from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
 from stepnft.losses import clipped_policy_loss
 from stepnft.policies.base import Policy
@@ -92,9 +93,10 @@ def call_step_rows(batch: Batch) -> Tensor:
 
 def steps_log_prob(batch: Batch, rows: Tensor, v: Tensor, noise_level: float) -> Tensor:
     """``[R]`` log-density of recorded steps ``rows`` under velocity ``v`` ``[R, H, A]``, over
-    the chunk positions their call executed."""
-    return sde_step_log_prob(batch.x_next[rows], batch.x_t[rows], v, batch.t[rows], batch.dt[rows], noise_level,
-                             batch.mask[batch.call[rows]])
+    the chunk positions their call executed (on ``v``'s device)."""
+    x_next, x_t, t, dt, mask = to_device((batch.x_next[rows], batch.x_t[rows], batch.t[rows], batch.dt[rows],
+                                          batch.mask[batch.call[rows]]), v.device)
+    return sde_step_log_prob(x_next, x_t, v, t, dt, noise_level, mask)
 
 
 # --- advantages ---------------------------------------------------------------------------------
@@ -154,10 +156,10 @@ def policy_gradient_update(
                 skipped += 1  # nothing to learn (e.g. GRPO's uniform groups); Adam would still move
                 continue
             step_rows = rows[calls].flatten()
-            v = shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
-                                                   batch.t[part]), step_rows)
+            v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), step_rows)
             log_prob = steps_log_prob(batch, step_rows, v, cfg.noise_level).view(len(calls), per_call).sum(dim=1)
-            loss, metrics = clipped_policy_loss(log_prob, old_log_prob[calls], advantages[calls], cfg.clip_coef)
+            loss, metrics = clipped_policy_loss(log_prob, *to_device((old_log_prob[calls], advantages[calls]), v.device),
+                                                cfg.clip_coef)
             for k, val in metrics.items():
                 sums[k] += val
             seen += 1
@@ -201,9 +203,9 @@ class ValueHead(nn.Module):
 
 
 def call_features(policy: Policy, batch: Batch) -> Tensor:
-    """``[C, F]`` detached observation features of every policy call."""
+    """``[C, F]`` detached observation features of every policy call (on the policy's device)."""
     with torch.no_grad():
-        return policy.encode(policy.processor(batch.obs)).flatten(1).detach()
+        return policy.encode(policy.prepare(batch.obs)).flatten(1).detach()
 
 
 # --- the algorithm ------------------------------------------------------------------------------
@@ -221,7 +223,7 @@ class PPO(Algorithm):
         self.critic_optimizer: torch.optim.Optimizer | None = None
 
     def _build_critic(self, in_dim: int) -> None:
-        self.critic = ValueHead(in_dim, self.cfg.critic_hidden_dim)
+        self.critic = ValueHead(in_dim, self.cfg.critic_hidden_dim).to(self.policy.device)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.critic_lr)
 
     @property
@@ -237,7 +239,7 @@ class PPO(Algorithm):
         if self.critic is None:
             self._build_critic(features.shape[1])
         with torch.no_grad():
-            values = self.critic(features)
+            values = self.critic(features).cpu()  # GAE and the advantages: on the CPU, like the batch
         advantages, returns = gae(success_rewards(batch), values, batch.done, batch.episode, cfg.gamma, cfg.gae_lambda)
         explained = 1.0 - float((returns - values).var() / returns.var()) if returns.var() > 0 else float("nan")
         raw = {"charts/advantage_mean": float(advantages.mean()),
@@ -246,7 +248,7 @@ class PPO(Algorithm):
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
         def critic_step(calls: Tensor) -> dict[str, float]:
-            value_loss = 0.5 * (self.critic(features[calls]) - returns[calls]).pow(2).mean()
+            value_loss = 0.5 * (self.critic(features[calls]) - returns[calls].to(features.device)).pow(2).mean()
             self.critic_guard.step(value_loss, list(self.critic.parameters()), self.critic_optimizer)
             return {"value_loss": value_loss.item()}
 

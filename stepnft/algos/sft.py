@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from stepnft.devices import to_device
 from stepnft.losses import flow_matching_loss
 from stepnft.policies.base import Policy, load_policy, make_policy
 from stepnft.policies.vision import random_shift
@@ -63,8 +64,9 @@ def sft_train(
     """Fit ``policy`` to demonstration chunks; returns the loss of every step.
 
     ``data``: ``obs`` (raw observation dict, ``[N, ...]`` per key), ``actions`` [N, H, A] in
-    [-1, 1], ``mask`` [N, H] (False on positions padded past an episode's end). Observations go
-    through ``policy.processor`` (fit and bound beforehand).
+    [-1, 1], ``mask`` [N, H] (False on positions padded past an episode's end), on the CPU.
+    Observations go through ``policy.processor`` (fit and bound beforehand). Each minibatch is
+    drawn and noised on the CPU (from ``generator``), then moved to the policy's device.
     """
     optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps,
                                   weight_decay=cfg.weight_decay)
@@ -80,7 +82,8 @@ def sft_train(
         obs = policy.processor({k: v[idx] for k, v in data["obs"].items()})
         if "image" in obs:
             obs["image"] = random_shift(obs["image"], cfg.image_shift, generator)
-        loss = flow_matching_loss(policy.velocity(obs, x_t, t), v_target, data["mask"][idx])
+        obs, x_t, t, v_target, mask = to_device((obs, x_t, t, v_target, data["mask"][idx]), policy.device)
+        loss = flow_matching_loss(policy.velocity(obs, x_t, t), v_target, mask)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -92,12 +95,12 @@ def sft_train(
 
 def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: list[str], max_episode_steps: int,
                    seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
-                   env_cfg=None, init: str | None = None) -> Policy:
+                   env_cfg=None, init: str | None = None, device: str = "cpu") -> Policy:
     """The SFT stage of a run: demonstrations (generated into ``demos_cfg.path`` if it holds
     none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`. ``env_cfg``
     (an ``EnvConfig``) gives the cameras to record and the state the policy sees. With ``init``,
     SFT fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder); its processor
-    keeps its statistics unless it has none."""
+    keeps its statistics unless it has none. The policy trains, and is returned, on ``device``."""
     from stepnft.data.demos import demo_cameras, demos_to_chunks, generate_demos, load_demos
 
     path = Path(demos_cfg.path)
@@ -131,6 +134,7 @@ def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: 
     if init is None or getattr(policy.processor, "needs_fit", False):
         policy.processor.fit(data["obs"]["state"])
     policy.processor.bind_instructions([simulator.instruction(t) for t in tasks], cache_dir)
+    policy.to(device)
     gen = torch.Generator().manual_seed(seed)
     bar = tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0)
     losses = sft_train(policy, data, sft_cfg, gen,

@@ -14,8 +14,9 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
+from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer, step_velocity
 from stepnft.batch import Batch
+from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
@@ -193,13 +194,15 @@ def stepnft_update(
             if w is not None and not bool(w.sum() > 0):
                 skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
                 continue
-            v = shard_forward(lambda part: learner(policy.processor(batch.steps_obs(part)), batch.x_t[part],
-                                                   batch.t[part]), idx)
+            v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), idx)
+            calls = batch.call[idx]
+            v_old, x_t, x_next, t, dt, label, mask, actions, w = to_device(
+                (batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], y[idx],
+                 batch.mask[calls], batch.actions[calls], w), v.device)
             loss, metrics = stepnft_loss(
-                v, batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], cfg.noise_level,
-                y[idx], beta=cfg.beta, beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta,
-                mask=batch.mask[batch.call[idx]], target=cfg.target, form=cfg.form, actions=batch.actions[batch.call[idx]],
-                weight=w,
+                v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
+                max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
+                actions=actions, weight=w,
             )
             if math.isfinite(metrics["loss"]):
                 for k, val in metrics.items():

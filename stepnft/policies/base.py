@@ -27,6 +27,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 from torch import Tensor, nn
 
+from stepnft.devices import to_device
 from stepnft.runs import write_atomic
 from stepnft.sampling import ChunkSample, sample_chunk
 
@@ -92,6 +93,16 @@ class Policy(nn.Module, ABC):
     def chunk_shape(self) -> tuple[int, int]:
         return self.config.horizon, self.config.action_dim
 
+    @property
+    def device(self) -> torch.device:
+        """Where the policy's weights live (``--device``; the processor stays on the CPU)."""
+        return next(self.parameters()).device
+
+    def prepare(self, raw: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Raw CPU observations -> model inputs on the policy's device: processed on the CPU
+        (``self.processor``), then moved."""
+        return to_device(self.processor(raw), self.device)
+
     def velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
         """``v_θ(x_t, t | o)`` for processed ``obs``: the training forward pass."""
         return self.denoise(self.encode(obs), x_t, t)
@@ -111,13 +122,14 @@ class Policy(nn.Module, ABC):
     @torch.no_grad()
     def sample(self, obs: dict[str, Tensor], noise_level: float = 0.0, generator: torch.Generator | None = None,
                stochastic_steps: str = "all", keep_path: bool = False) -> ChunkSample:
-        """Sample chunks ``[B, H, A]`` for processed ``obs``: ODE when ``noise_level = 0``
-        (evaluation), else Flow-SDE; the context is encoded once."""
+        """Sample chunks ``[B, H, A]`` for processed ``obs`` (on the policy's device): ODE when
+        ``noise_level = 0`` (evaluation), else Flow-SDE; the context is encoded once. The noise
+        is drawn from the CPU ``generator`` and moved, whatever the device."""
         context = self.encode(obs)
         batch = next(iter(obs.values())).shape[0]
         return sample_chunk(lambda x, t: self.denoise(context, x, t), (batch, *self.chunk_shape),
                             num_steps=self.config.num_inference_steps, noise_level=noise_level, generator=generator,
-                            stochastic_steps=stochastic_steps, device=next(self.parameters()).device,
+                            stochastic_steps=stochastic_steps, device=self.device,
                             keep_path=keep_path)
 
     # --- save / load ---------------------------------------------------------------------------

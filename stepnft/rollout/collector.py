@@ -21,6 +21,7 @@ from torch import Tensor
 
 from stepnft.algos.base import RolloutSpec
 from stepnft.batch import Batch
+from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 
 
@@ -122,9 +123,10 @@ class Collector:
         while not done.all():
             playing = np.flatnonzero(~done)
             obs = {k: torch.as_tensor(v[playing]) for k, v in raw.items()} | {"task": task_ids[playing]}
-            sample = policy.sample(policy.processor(obs), noise_level=noise_level,
-                                   generator=[generators[i] for i in playing],
-                                   stochastic_steps=stochastic_steps, keep_path=keep_path)
+            # Processed on the CPU, sampled on the policy's device, the chunk back on the CPU.
+            sample = to_device(policy.sample(policy.prepare(obs), noise_level=noise_level,
+                                             generator=[generators[i] for i in playing],
+                                             stochastic_steps=stochastic_steps, keep_path=keep_path), "cpu")
             chunk = np.zeros((n, n_exec, policy.config.action_dim), dtype=np.float32)
             chunk[playing] = policy.env_actions(sample.actions[:, :n_exec]).clamp(-1.0, 1.0).numpy()
             raw, reward, terminated, truncated, info = venv.step(chunk)
