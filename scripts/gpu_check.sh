@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# GPU checks for --device (docs/gpu.md), for a lent CUDA machine with python3, torch and pytest
+# but none of stepnft's other dependencies: one script, each part its own step and log, none
+# stopping the next. Run from the repository root:
+#
+#     bash scripts/gpu_check.sh CARRY
+#
+# CARRY holds whl/ (wheels of the missing packages: tyro, gymnasium, metaworld, mujoco, ...;
+# installed with --no-deps into $SITE, default /tmp/site) and lang_cache/ (the quickstart tasks' instruction
+# embeddings, so no sentence encoder is needed). Logs and results go to $OUT (default
+# /tmp/gpu_check): setup.log, core_tests.log, cuda_tests.log, compute.log, compute/ and steps.txt.
+# Parts, in priority order: (a) the core unit tests on the machine's CPU (GPU hidden: a check of
+# its python and torch), (b) the CUDA tests of tests/test_devices.py, (c) benchmarks/compute.py
+# on cpu and cuda.
+set +e
+CARRY=${1:-.gpucarry}
+OUT=${OUT:-/tmp/gpu_check}
+PY=${PY:-python3}
+SITE=${SITE:-/tmp/site}
+XDIST=${XDIST--n 8}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 PYTHONPATH=$SITE:$PWD
+: > "$OUT/steps.txt"
+
+step() {  # step NAME SECONDS COMMAND...: run with a time limit into $OUT/NAME.log, note rc and time
+    local name=$1 limit=$2 start=$SECONDS
+    shift 2
+    echo "=== $name (at most ${limit}s)"
+    timeout "$limit" "$@" > "$OUT/$name.log" 2>&1
+    local rc=$?
+    echo "$name rc=$rc $((SECONDS - start))s" | tee -a "$OUT/steps.txt"
+    tail -n 12 "$OUT/$name.log"
+}
+
+setup() {
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+    $PY -c "import sys, torch; print(sys.version); print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')"
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" "$CARRY"/whl/*.whl
+    $PY -c "import stepnft, tyro, gymnasium, metaworld, mujoco; print('stepnft from', stepnft.__file__)"
+}
+
+CORE_TESTS=${CORE_TESTS:-"tests/test_sampling.py tests/test_losses.py tests/test_batch.py tests/test_ema.py tests/algos
+tests/envs/test_bandit.py tests/test_demo_bandit.py tests/test_baselines_bandit.py tests/test_distributed.py
+tests/rollout/test_collector.py tests/test_devices.py"}
+
+export -f setup
+export CARRY PY SITE
+step setup 60 bash -c setup
+# (a) on the machine's CPU: the GPU hidden, so the CUDA tests skip and --device cuda is refused.
+step core_tests 120 env CUDA_VISIBLE_DEVICES= $PY -m pytest -q -p no:cacheprovider $XDIST $CORE_TESTS
+# (b) on the GPU: SFT, rollout, updates and checkpoints against the CPU, and a bandit run.
+step cuda_tests 100 $PY -m pytest -q -p no:cacheprovider -rs tests/test_devices.py
+# (c) throughput of the quickstart policy (MetaWorld tasks, instructions from the cache) on cpu and cuda.
+step compute 150 $PY benchmarks/compute.py --device cpu,cuda --algos stepnft,ppo,grpo --calls 1000 --episodes 20 \
+    --repeats 3 --rollout-episodes 40 --sample-sizes 1,8,64,512,4096 --lang-cache "$CARRY/lang_cache" --out "$OUT/compute"
+rm -f "$OUT/compute/compute.md"  # the table is in compute.log (8 files come back)
+cat "$OUT/steps.txt"
