@@ -198,6 +198,10 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
                              f"{cfg.env.state_obs}) and {sim.action_dim}")
         raise ValueError(f"{sim.label} has {state_dim}-d states (env.state_obs {cfg.env.state_obs}) and "
                          f"{sim.action_dim}-d actions: set --policy.state-dim {state_dim} --policy.action-dim {sim.action_dim}")
+    if cfg.init and list(policy_cfg.cameras) != list(cfg.env.cameras):
+        raise ValueError(f"--init policy {cfg.init} sees cameras {list(policy_cfg.cameras)}, env.cameras is "
+                         f"{list(cfg.env.cameras)}: give the policy's cameras to --env.cameras (a LeRobot policy's "
+                         "are the `cameras` of its config.json)")
     created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
     if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone
