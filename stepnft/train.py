@@ -173,6 +173,10 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
                                 run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init)
         policy.save_pretrained(run_dir / "policy")
+        if cfg.eval.episodes == 0:  # e.g. `stepnft train --init RUN/policy` evaluates it next
+            write_atomic(run_dir / "summary.json", json.dumps({"sft": None}, indent=2))
+            log(f"SFT policy saved to {run_dir / 'policy'} (eval.episodes 0: not evaluated)")
+            return {}
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))

@@ -329,7 +329,8 @@ def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monk
     run("demos", *env, *demos)
     assert json.loads((tmp_path / "demos" / "manifest.json").read_text())["generator"]["cameras"] == ["synthetic"]
     run("sft", "--init", tiny_folder, "--run-dir", tmp_path / "sft", *env, *demos, "--sft.steps", "3",
-        "--sft.batch-size", "8", "--env.envs-per-task", "8", "--eval.episodes", "8")
+        "--sft.batch-size", "8", "--env.envs-per-task", "8", "--eval.episodes", "0")
+    assert json.loads((tmp_path / "sft" / "summary.json").read_text()) == {"sft": None}  # `train` evaluates it
     sft = load_policy(tmp_path / "sft" / "policy")
     assert sft.type == "smolvla" and sft.config.cameras == ["synthetic"] and not sft.processor.needs_fit
     assert load_policy(tiny_folder).processor.needs_fit  # the --init folder itself is left as it was
