@@ -237,7 +237,8 @@ class TrainConfig:
             raise ValueError(f"{bad[0]}={getattr(self, bad[0])!r} is invalid: iterations must be >= 0, "
                              "episodes_per_iteration, checkpoint_every, num_threads and env_step_budget >= 1, "
                              "allocation_floor in [0, 1], device cpu, cuda or cuda:N")
-        if self.policy.cameras != self.env.cameras:
+        # An --init policy brings its own cameras (checked when the run starts).
+        if self.init is None and self.policy.cameras != self.env.cameras:
             raise ValueError(f"policy.cameras {self.policy.cameras} differ from env.cameras {self.env.cameras}: "
                              "give both the same list (e.g. --config configs/image.yaml)")
 

@@ -174,6 +174,10 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
                                 run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init, device=cfg.device)
         policy.save_pretrained(run_dir / "policy")
+        if cfg.eval.episodes == 0:  # e.g. `stepnft train --init RUN/policy` evaluates it next
+            write_atomic(run_dir / "summary.json", json.dumps({"sft": None}, indent=2))
+            log(f"SFT policy saved to {run_dir / 'policy'} (eval.episodes 0: not evaluated)")
+            return {}
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
@@ -200,6 +204,10 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
                              f"{cfg.env.state_obs}) and {sim.action_dim}")
         raise ValueError(f"{sim.label} has {state_dim}-d states (env.state_obs {cfg.env.state_obs}) and "
                          f"{sim.action_dim}-d actions: set --policy.state-dim {state_dim} --policy.action-dim {sim.action_dim}")
+    if cfg.init and list(policy_cfg.cameras) != list(cfg.env.cameras):
+        raise ValueError(f"--init policy {cfg.init} sees cameras {list(policy_cfg.cameras)}, env.cameras is "
+                         f"{list(cfg.env.cameras)}: give the policy's cameras to --env.cameras (a LeRobot policy's "
+                         "are the `cameras` of its config.json)")
     created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
     if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone

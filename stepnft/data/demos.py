@@ -191,7 +191,9 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
     images = [obs["image"]] if "image" in obs else None
     done = False
     while not done:
-        action = np.asarray(expert.act(obs), dtype=np.float64)
+        # A copy: some experts edit the observation they are given (MetaWorld's door-open and
+        # door-close shift the handle position in place), which would change the recorded state.
+        action = np.asarray(expert.act({k: np.copy(v) for k, v in obs.items()}), dtype=np.float64)
         if action_noise > 0:
             action = action + noise_rng.normal(0.0, action_noise, size=action.shape)
         action = np.clip(action, -1.0, 1.0).astype(np.float32)

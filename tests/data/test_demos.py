@@ -210,3 +210,27 @@ def test_demos_with_cameras_store_images_and_give_image_chunks(tmp_path, reach_d
     with pytest.raises(ValueError, match="no camera images: generate demonstrations with --env.cameras"):
         demos_to_chunks([plain], ["reach-v3"], horizon=4, images=True)
     assert load_demos(reach_demos)[0].images is None  # files without images load as before
+
+
+def test_an_expert_that_edits_its_observation_does_not_change_the_recorded_states(tmp_path):
+    """MetaWorld's door-open and door-close experts shift the handle position of the observation
+    array they are given, in place: the recorder hands them a copy, so it stores the env's states."""
+    from stepnft.envs.bandit import Bandit, BanditChunkEnv
+
+    class EditingExpert:
+        def __init__(self, expert):
+            self.expert = expert
+
+        def act(self, obs):
+            obs["state"][0] -= 0.05  # as door-open's `pos_door[0] -= 0.05`
+            return self.expert.act(obs)
+
+    class EditingBandit(Bandit):
+        def expert(self, task, seed):
+            return EditingExpert(super().expert(task, seed))
+
+    path = generate_demos("bandit", 2, tmp_path / "demos", simulator=EditingBandit(), max_episode_steps=2,
+                          progress=False, successful_only=False)
+    for episode in load_demos(path):
+        obs, _ = BanditChunkEnv(n_exec=1).reset(seed=episode.seed)
+        np.testing.assert_array_equal(episode.observations, np.stack([obs["state"]] * len(episode.observations)))

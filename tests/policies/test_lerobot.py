@@ -39,6 +39,25 @@ def test_a_smolvla_folder_without_lerobot_is_one_line(tmp_path):
         load_policy(tmp_path)
 
 
+def test_a_smolvla_folders_cameras_come_from_its_image_features(tmp_path):
+    """Read without LeRobot: `cameras` (the env's views, in order) from LeRobot's
+    observation.images.<name> features when the stepnft config.json does not list them."""
+    from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
+
+    features = {"observation.state": {"type": "STATE", "shape": [4]},
+                "observation.images.corner": {"type": "VISUAL", "shape": [3, 64, 64]},
+                "observation.images.gripperPOV": {"type": "VISUAL", "shape": [3, 64, 64]}}
+    (tmp_path / "lerobot").mkdir()
+    (tmp_path / "lerobot" / "config.json").write_text(json.dumps(
+        {"type": "smolvla", "input_features": features, "output_features": {"action": {"type": "ACTION", "shape": [4]}},
+         "chunk_size": 4, "n_action_steps": 4, "num_steps": 4}))
+    (tmp_path / "config.json").write_text(json.dumps({"type": "smolvla", "lerobot": "lerobot", "train": "expert"}))
+    config = LeRobotPolicyConfig.read(tmp_path)
+    assert config.cameras == ["corner", "gripperPOV"] and (config.state_dim, config.action_dim) == (4, 4)
+    (tmp_path / "config.json").write_text(json.dumps({"type": "smolvla", "lerobot": "lerobot", "cameras": ["topview"]}))
+    assert LeRobotPolicyConfig.read(tmp_path).cameras == ["topview"]  # set by the user: kept
+
+
 # --- a bandit with a synthetic camera image (the context painted into two channels) ------------
 class ImageBanditEnv(gym.Wrapper):
     """The bandit with an ``image`` uint8 [1, 3, 16, 16] observation: channel k holds context k."""
@@ -64,9 +83,15 @@ class ImageBanditEnv(gym.Wrapper):
 
 
 class ImageBandit(Bandit):
+    """The image bandit as a simulator with one camera, ``synthetic``, at 16 px (``--env.cameras
+    synthetic --env.image-size 16``): demonstrations with images, SFT and RL from the CLI."""
+
     name = "bandit-image"
 
-    def make_env(self, task, n_exec=2, max_episode_steps=2, terminate_on_success=True, seed=0, render_size=None):
+    def make_env(self, task, n_exec=2, max_episode_steps=2, terminate_on_success=True, seed=0, render_size=None,
+                 cameras=("synthetic",), image_size=IMAGE):
+        if list(cameras) != ["synthetic"] or image_size != IMAGE:
+            raise ValueError(f"the image bandit has one camera, synthetic, at {IMAGE} px")
         return ImageBanditEnv(super().make_env(task, n_exec, max_episode_steps, terminate_on_success, seed))
 
 
@@ -287,23 +312,47 @@ def test_pi0_and_pi05_say_what_is_missing():
 
 @needs_lerobot
 @pytest.mark.slow
-def test_train_from_the_cli_and_resume(tiny_folder, tmp_path, monkeypatch, capsys):
-    """`stepnft train --init <SmolVLA folder>` on the image bandit, checkpoints, resume.
-    (`stepnft sft --init` needs demonstrations that hold images: the camera observations' demos.)"""
+def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monkeypatch, capsys):
+    """The LeRobot user's path on the image bandit: `stepnft demos` with cameras, `stepnft sft
+    --init <new SmolVLA>` on them, `stepnft train --init RUN/policy`, checkpoints, resume, eval."""
     from stepnft.cli import main
     from stepnft.envs import SIMULATORS, SimulatorInfo
     from stepnft.policies.base import load_policy
 
+    def run(*argv):
+        assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+
     monkeypatch.setitem(SIMULATORS, "bandit-image", SimulatorInfo(f"{__name__}:ImageBandit", 64, ("bandit",)))
-    argv = ["train", "--init", tiny_folder, "--run-dir", tmp_path / "rl", "--iterations", "2",
+    env = ["--env.name", "bandit-image", "--env.tasks", "bandit", "--env.cameras", "synthetic", "--env.image-size", IMAGE,
+           "--env.max-episode-steps", "2"]
+    demos = ["--demos.path", tmp_path / "demos", "--demos.episodes", "16"]
+    run("demos", *env, *demos)
+    assert json.loads((tmp_path / "demos" / "manifest.json").read_text())["generator"]["cameras"] == ["synthetic"]
+    run("sft", "--init", tiny_folder, "--run-dir", tmp_path / "sft", *env, *demos, "--sft.steps", "3",
+        "--sft.batch-size", "8", "--env.envs-per-task", "8", "--eval.episodes", "0")
+    assert json.loads((tmp_path / "sft" / "summary.json").read_text()) == {"sft": None}  # `train` evaluates it
+    sft = load_policy(tmp_path / "sft" / "policy")
+    assert sft.type == "smolvla" and sft.config.cameras == ["synthetic"] and not sft.processor.needs_fit
+    assert load_policy(tiny_folder).processor.needs_fit  # the --init folder itself is left as it was
+
+    argv = ["train", "--init", tmp_path / "sft" / "policy", "--run-dir", tmp_path / "rl", "--iterations", "2",
             "--episodes-per-iteration", "8", "--eval.every", "1", "--checkpoint-every", "1", "--algo.minibatch-size", "8",
-            "--env.name", "bandit-image", "--env.tasks", "bandit", "--env.envs-per-task", "8",
-            "--env.max-episode-steps", "2", "--eval.episodes", "8", "--eval.during-episodes", "8", "--eval.seed", "100"]
-    assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+            *env, "--env.envs-per-task", "8", "--eval.episodes", "8", "--eval.during-episodes", "8", "--eval.seed", "100"]
+    run(*argv)
     summary = json.loads((tmp_path / "rl" / "summary.json").read_text())
     assert summary["iterations"] == 2 and summary["env_steps"] > 0
     records = [json.loads(line) for line in (tmp_path / "rl" / "metrics.jsonl").read_text().splitlines()]
     assert any(r.get("losses/update_steps", 0) > 0 for r in records)
     final = load_policy(tmp_path / "rl" / "policy")
     assert final.type == "smolvla" and (tmp_path / "rl" / "checkpoints" / "LATEST").is_file()
-    assert main(["train", "--resume", str(tmp_path / "rl")]) == 0  # finished: resumes to the same end
+    run("train", "--resume", tmp_path / "rl")  # finished: resumes to the same end
+    # The env's cameras follow the policy's in `stepnft eval` (its suites bind instructions too).
+    run("eval", "--policy", tmp_path / "rl" / "policy", "--env.name", "bandit-image", "--env.tasks", "bandit",
+        "--env.image-size", IMAGE, "--env.max-episode-steps", "2", "--eval.episodes", "4")
+
+    # Cameras other than the policy's: one line before anything is written.
+    capsys.readouterr()
+    assert main([str(a) for a in argv[:3]] + ["--run-dir", str(tmp_path / "nocam"), "--env.name", "bandit-image",
+                                               "--env.tasks", "bandit", "--env.max-episode-steps", "2"]) == 2
+    assert "sees cameras ['synthetic'], env.cameras is []" in capsys.readouterr().err
+    assert not (tmp_path / "nocam").exists()

@@ -28,7 +28,6 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable, ClassVar
 
-import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import CONFIG_NAME, Policy, non_finite
@@ -204,8 +203,8 @@ class LeRobotFlowPolicy(Policy):
 
 def lerobot_config_dict(lerobot_cfg) -> dict:
     """The fields of a LeRobot config that :meth:`LeRobotPolicyConfig.completed` reads."""
-    features = {k: {"shape": list(f.shape)} for k, f in {**lerobot_cfg.input_features,
-                                                          **lerobot_cfg.output_features}.items()}
+    features = {k: {"type": f.type.value, "shape": list(f.shape)}
+                for k, f in {**lerobot_cfg.input_features, **lerobot_cfg.output_features}.items()}
     return {"input_features": features, "n_action_steps": lerobot_cfg.n_action_steps,
             "chunk_size": lerobot_cfg.chunk_size,
             "num_steps": getattr(lerobot_cfg, "num_steps", getattr(lerobot_cfg, "num_inference_steps", 10))}

@@ -15,7 +15,7 @@ needs no LeRobot, so the training loop can size its environments before anything
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -52,6 +52,10 @@ class LeRobotPolicyConfig:
     """Action size sent to the env (recorded from the LeRobot config)."""
     horizon: int = 0
     """Chunk length H (LeRobot's chunk_size, recorded)."""
+    cameras: list[str] = field(default_factory=list)
+    """The simulator cameras that feed the policy's image features, in their order (recorded
+    from LeRobot's ``observation.images.<name>`` features; edit it when a checkpoint's feature
+    names are not the simulator's camera names: views are fed in this order)."""
 
     def __post_init__(self) -> None:
         if self.train not in TRAIN_SCOPES:
@@ -72,9 +76,17 @@ class LeRobotPolicyConfig:
         directory = Path(directory)
         data = json.loads((directory / "config.json").read_text())
         data.pop("type", None)
-        if "lerobot" in data:
-            return cls.from_dict(data)
-        return cls(lerobot=".").completed(data)
+        if "lerobot" not in data:
+            return cls(lerobot=".").completed(data)
+        settings = cls.from_dict(data)
+        # Folders saved before `cameras` was recorded: complete it from LeRobot's own config.
+        lerobot_json = directory / settings.lerobot / "config.json"
+        return settings.completed(json.loads(lerobot_json.read_text())) if lerobot_json.is_file() else settings
+
+    @property
+    def lang_dim(self) -> int:
+        """Non-zero: the policy reads the instruction (LeRobot's VLAs tokenise it themselves)."""
+        return 1
 
     def completed(self, lerobot_config: dict) -> "LeRobotPolicyConfig":
         """These settings with every 0 filled from a LeRobot config (its config.json as a dict)."""
@@ -85,10 +97,13 @@ class LeRobotPolicyConfig:
             return int(shape[0]) if shape else 0
 
         steps = lerobot_config.get("num_steps", lerobot_config.get("num_inference_steps", 10))
+        # Image features are LeRobot's observation.images.<name> (VISUAL); <name> is taken as the camera's.
+        cameras = [k.split(".", 2)[-1] for k, f in lerobot_config.get("input_features", {}).items()
+                   if f.get("type") == "VISUAL" or k.startswith("observation.images.")]
         values = {"n_exec": lerobot_config.get("n_action_steps", 1), "num_inference_steps": steps,
                   "state_dim": size("observation.state"), "action_dim": size("action"),
-                  "horizon": lerobot_config.get("chunk_size", 1)}
+                  "horizon": lerobot_config.get("chunk_size", 1), "cameras": cameras}
         data = self.to_dict()
         for key, value in values.items():
-            data[key] = data[key] or int(value)
+            data[key] = data[key] or (value if key == "cameras" else int(value))
         return type(self)(**data)

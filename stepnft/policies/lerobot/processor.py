@@ -13,6 +13,7 @@ post-processor, un-normalises the actions, exactly as ``lerobot-eval`` would.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -96,6 +97,16 @@ class LeRobotProcessor:
         (raw ``instruction`` picks one, the first when absent). Tokenised per call by LeRobot's
         pipeline (``cache_dir`` is unused: nothing to cache)."""
         self.instruction_variants = [[item] if isinstance(item, str) else list(item) for item in instructions]
+
+    @contextmanager
+    def bound(self, instructions: Sequence[str | Sequence[str]], cache_dir: str | Path | None = None):
+        """Within the block, bound to ``instructions`` (e.g. an evaluation suite's variants); restored after."""
+        saved = self.instruction_variants
+        try:
+            self.bind_instructions(instructions, cache_dir)
+            yield self
+        finally:
+            self.instruction_variants = saved
 
     @property
     def instructions(self) -> list[str]:

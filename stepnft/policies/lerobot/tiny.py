@@ -104,7 +104,7 @@ class NewSmolVLA:
     """Actions executed per policy call (SmolVLA's n_action_steps)."""
     num_steps: int = 4
     """Denoising steps K."""
-    cameras: list[str] = field(default_factory=lambda: ["corner2"])
+    cameras: list[str] = field(default_factory=lambda: ["corner"])
     """Camera views, in the order the env renders them (image features observation.images.<name>)."""
     image_size: int = 64
     """Side of the square camera images the env renders."""
