@@ -53,3 +53,13 @@ def test_every_variant_builds_and_is_described():
         assert name in describe_variants()
     with pytest.raises(ValueError, match="unknown variant"):
         variant_config("sac", base)
+
+
+@pytest.mark.parametrize("name", ["ppo", "grpo"])
+def test_baseline_configs_are_the_compared_variants(name):
+    """configs/ppo.yaml and configs/grpo.yaml are what `stepnft compare --algos ppo,grpo` runs on the
+    quickstart: the variant's algo settings, and everything else the quickstart's."""
+    quickstart = load_config("configs/quickstart.yaml")
+    config = load_config(f"configs/{name}.yaml")
+    assert config.algo == variant_config(name, quickstart.algo)
+    assert dataclasses.replace(config, run_dir=quickstart.run_dir, algo=quickstart.algo) == quickstart
