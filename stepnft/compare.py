@@ -461,8 +461,9 @@ def command_line(cmd: CompareCommand) -> str:
     tasks = f" --tasks {' '.join(cmd.tasks)}" if cmd.tasks else ""
     steps = f" --env-steps {cmd.env_steps}" if cmd.env_steps is not None else ""
     evals = f" --eval-episodes {cmd.eval_episodes}" if cmd.eval_episodes is not None else ""
+    suites = f" --suites {','.join(cmd.suites)} --suite-episodes {cmd.suite_episodes}" if cmd.suites else ""
     return (f"stepnft compare --config {cmd.config} --algos {','.join(cmd.algos)} "
-            f"--seeds {' '.join(map(str, cmd.seeds))}{tasks}{steps}{evals} --out {cmd.out}")
+            f"--seeds {' '.join(map(str, cmd.seeds))}{tasks}{steps}{evals}{suites} --out {cmd.out}")
 
 
 def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:

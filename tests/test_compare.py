@@ -140,3 +140,4 @@ def test_suites_evaluate_every_final_policy_and_the_sft_start(tmp_path):
         assert result["suite"] == "ind" and result["tasks"]["bandit"]["episodes"] == 128
     report = (out / "suites.md").read_text()
     assert "| SFT (start) | 1 |" in report and "| stepnft | 1 |" in report and "ood_average" in report
+    assert "--suites ind --suite-episodes 128" in report  # the command shown reproduces the table
