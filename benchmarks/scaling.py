@@ -25,6 +25,7 @@ import statistics
 import sys
 import tempfile
 import time
+import types
 from pathlib import Path
 
 import torch
@@ -35,6 +36,7 @@ from stepnft.algos.base import make_algorithm, make_optimizer
 from stepnft.algos.stepnft import stepnft_update
 from stepnft.config import RayConfig, load_config
 from stepnft.envs import get_simulator, make_vec_env
+from stepnft.envs.sharded import shard_ranges
 from stepnft.policies.base import make_policy
 from stepnft.rollout.collector import Collector
 
@@ -42,8 +44,12 @@ from stepnft.rollout.collector import Collector
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="configs/quickstart.yaml", help="run config giving the env, policy and algorithm")
-    p.add_argument("--waves", type=int, default=5, help="timed rollout waves per setting (after one warm-up wave)")
+    p.add_argument("--waves", type=int, default=12,
+                   help="timed rollout waves per setting, taken in turns (after one warm-up wave each); the median counts")
     p.add_argument("--updates", type=int, default=5, help="timed π-StepNFT updates per learner setting (after a warm-up)")
+    p.add_argument("--learner-rounds", type=int, default=3, help="learner timings per setting, taken in turns")
+    p.add_argument("--learner-hidden-dim", type=int, default=1024,
+                   help="also time the learner with a wider policy (compute-bound, where DDP pays); 0: skip")
     p.add_argument("--pushes", type=int, default=10, help="timed weight pushes per kind")
     p.add_argument("--push-hidden-dim", type=int, default=2048,
                    help="also time pushes of a wider policy (6 layers this wide) to measure bandwidth; 0: skip")
@@ -57,11 +63,15 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def setup(args):
     cfg = load_config(args.config)
+    # One core per rollout worker: each Ray worker (and the in-process baseline) steps its envs itself
+    # rather than in env.num_workers processes of its own, so 2 workers fit on 2 cores.
+    cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, num_workers=0))
     if args.quick:
         cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, tasks=cfg.env.tasks[:2], envs_per_task=2,
                                                                max_episode_steps=20),
                                   policy=dataclasses.replace(cfg.policy, lang_dim=0, hidden_dim=64))
-        args.waves, args.updates, args.pushes, args.push_hidden_dim = 1, 1, 2, 0
+        args.waves, args.updates, args.learner_rounds, args.pushes, args.push_hidden_dim = 1, 1, 1, 2, 0
+        args.learner_hidden_dim = 0
     torch.set_num_threads(cfg.num_threads)  # as `stepnft train` (and each Ray worker) does
     torch.manual_seed(0)
     policy = make_policy(cfg.policy)
@@ -70,15 +80,58 @@ def setup(args):
 
 
 # --- rollouts ---------------------------------------------------------------------------------
-def time_rollouts(collector, policy, spec, waves: int) -> dict:
-    collector.collect(policy, collector.num_envs, spec)  # warm-up: whole-policy push, first resets
-    steps, start = 0, time.perf_counter()
+def time_rollouts(collectors: dict, policy, spec, waves: int) -> dict:
+    """Env steps/s of each collector, timed wave by wave in turns (one wave of each, ``waves``
+    times) so that a shared machine's slow spells fall on every setting alike; the median wave."""
+    for collector in collectors.values():  # warm-up: whole-policy push, first resets
+        collector.collect(policy, collector.num_envs, spec)
+    rates, batches = {key: [] for key in collectors}, {}
     for _ in range(waves):
-        batch = collector.collect(policy, collector.num_envs, spec)
-        steps += batch.env_steps
-    seconds = time.perf_counter() - start
-    return {"env_steps": steps, "seconds": seconds, "env_steps_per_s": steps / seconds,
-            "mean_episode_steps": float(batch.episode_length.double().mean()), "last_batch": batch}
+        for key, collector in collectors.items():
+            start = time.perf_counter()
+            batches[key] = collector.collect(policy, collector.num_envs, spec)
+            rates[key].append(batches[key].env_steps / (time.perf_counter() - start))
+    return {key: {"waves": waves, "env_steps_per_wave": batches[key].env_steps,
+                  "env_steps_per_s": statistics.median(rates[key]), "per_wave": rates[key],
+                  "mean_episode_steps": float(batches[key].episode_length.double().mean()), "last_batch": batches[key]}
+            for key in collectors}
+
+
+def _plain_worker(pipe, env_cfg, n_exec: int, seed: int, sub_envs: list[int], policy, spec, num_threads: int):
+    torch.set_num_threads(num_threads)
+    collector = Collector(make_vec_env(env_cfg, n_exec, seed, sub_envs=sub_envs))
+    while pipe.recv():
+        pipe.send(collector.collect(policy, len(sub_envs), spec).episode_length)
+    collector.close()
+
+
+class PlainProcesses:
+    """The machine's own ceiling for 2 workers: the Ray workers' shards played by plain processes
+    (no Ray, no driver traffic), a wave ending when both are done."""
+
+    def __init__(self, cfg, policy, spec, workers: int = 2):
+        ctx = mp.get_context("spawn")
+        self.num_envs = len(cfg.env.tasks) * cfg.env.envs_per_task
+        self.pipes, self.processes = [], []
+        for shard in shard_ranges(self.num_envs, workers, "interleave"):
+            parent, child = ctx.Pipe()
+            process = ctx.Process(target=_plain_worker, daemon=True,
+                                  args=(child, cfg.env, cfg.policy.n_exec, cfg.seed, list(shard), policy, spec,
+                                        cfg.num_threads))
+            process.start()
+            self.pipes.append(parent)
+            self.processes.append(process)
+
+    def collect(self, policy, num_episodes, spec):  # the policy and spec are the ones given at start
+        for pipe in self.pipes:
+            pipe.send(True)
+        lengths = torch.cat([pipe.recv() for pipe in self.pipes])
+        return types.SimpleNamespace(env_steps=int(lengths.sum()), episode_length=lengths)
+
+    def close(self):
+        for pipe, process in zip(self.pipes, self.processes):
+            pipe.send(False)
+            process.join(timeout=30)
 
 
 def time_pushes(collector, policy, pushes: int) -> dict:
@@ -133,6 +186,18 @@ def time_learner(policy, batch, algo, world: int, updates: int) -> dict:
         return json.loads(Path(f"{tmp}/result.json").read_text())
 
 
+def measure_learner(policy, batch, algo, args) -> dict:
+    """Samples/s of 1 and 2 DDP processes, timed in turns (as the rollouts); the median round."""
+    timings = {1: [], 2: []}
+    for _ in range(args.learner_rounds):
+        for world in timings:
+            timings[world].append(time_learner(policy, batch, algo, world, args.updates))
+    return {str(world): {"samples_per_update": runs[0]["samples"] // args.updates,
+                         "samples_per_s": statistics.median(run["samples_per_s"] for run in runs),
+                         "per_round": [run["samples_per_s"] for run in runs]}
+            for world, runs in timings.items()}
+
+
 # --- projection -------------------------------------------------------------------------------
 def project(results: dict, cfg, args) -> list[dict]:
     """Seconds per iteration of an ``--project-envs`` run (one episode per env per iteration) on
@@ -166,20 +231,24 @@ def project(results: dict, cfg, args) -> list[dict]:
 
 # --- report -----------------------------------------------------------------------------------
 def report(results: dict, out: Path) -> str:
-    r, lines = results, []
+    r, a, lines = results, results["args"], []
     lines += ["| rollouts | env steps/s | speed-up vs 1 worker |", "|---|---|---|"]
-    for key, label in (("0", "in process (--ray.workers 0)"), ("1", "1 Ray worker"), ("2", "2 Ray workers")):
+    for key, label in (("0", "in process (--ray.workers 0)"), ("1", "1 Ray worker"), ("2", "2 Ray workers"),
+                       ("plain 2", "2 plain processes, no Ray (the machine's ceiling)")):
         lines.append(f"| {label} | {r['rollout'][key]['env_steps_per_s']:.0f} | "
                      f"{r['rollout'][key]['env_steps_per_s'] / r['rollout']['1']['env_steps_per_s']:.2f}x |")
+    turns = [two / one for one, two in zip(r["rollout"]["1"]["per_wave"], r["rollout"]["2"]["per_wave"])]
+    lines += ["", f"Medians of {len(turns)} waves each, taken in turns; 2 workers / 1 worker turn by turn: median "
+              f"{statistics.median(turns):.2f}x, range {min(turns):.2f}x to {max(turns):.2f}x."]
     lines += ["", "| learner | samples/s | speed-up |", "|---|---|---|"]
-    for key in ("1", "2"):
-        lines.append(f"| {key} DDP process{'es' if key == '2' else ''} | {r['learner'][key]['samples_per_s']:.0f} | "
-                     f"{r['learner'][key]['samples_per_s'] / r['learner']['1']['samples_per_s']:.2f}x |")
+    for name, label in (("learner", "default policy"), ("learner_wide", f"hidden {a['learner_hidden_dim']}")):
+        for key in ("1", "2") if name in r else ():
+            lines.append(f"| {key} DDP process{'es' if key == '2' else ''}, {label} | {r[name][key]['samples_per_s']:.0f} | "
+                         f"{r[name][key]['samples_per_s'] / r[name]['1']['samples_per_s']:.2f}x |")
     lines += ["", "| weight push (2 workers) | MB | new policy | all tensors changed | unchanged |", "|---|---|---|---|---|"]
     for name, p in r["push"].items():
         lines.append(f"| {name} policy | {p['policy_mb']:.1f} | {1e3 * p['whole_s']:.1f} ms | "
                      f"{1e3 * p['changed_s']:.1f} ms | {1e3 * p['unchanged_s']:.1f} ms |")
-    a = r["args"]
     lines += ["", f"Projection: {a['project_envs']} environments, {a['project_iterations']} iterations, "
               f"{a['cores_per_machine']} cores per machine (docs/scaling.md):", "",
               "| machines | rollout workers | learner processes | rollout s | update s | push s | s / iteration | "
@@ -202,13 +271,21 @@ def plot(results: dict, path: Path) -> None:
 
     fig, axes = plt.subplots(1, 4, figsize=(18, 4))
     roll = results["rollout"]
-    axes[0].bar(["in process", "1 worker", "2 workers"], [roll[k]["env_steps_per_s"] for k in ("0", "1", "2")])
+    axes[0].bar(["in process", "1 worker", "2 workers", "2 plain\nprocesses"],
+                [roll[k]["env_steps_per_s"] for k in ("0", "1", "2", "plain 2")])
     axes[0].set_title("rollouts (learner idle)")
     axes[0].set_ylabel("env steps / s")
-    learn = results["learner"]
-    axes[1].bar(["1 process", "2 processes"], [learn[k]["samples_per_s"] for k in ("1", "2")], color="tab:orange")
+    learners = [(name, label) for name, label in (("learner", "default policy"),
+                                                  ("learner_wide", f"hidden {results['args']['learner_hidden_dim']}"))
+                if name in results]
+    for j, (name, label) in enumerate(learners):
+        learn = results[name]
+        axes[1].bar([i + 0.4 * j for i in range(2)], [learn[k]["samples_per_s"] / learn["1"]["samples_per_s"]
+                                                     for k in ("1", "2")], width=0.4, label=label)
+    axes[1].set_xticks([0.2, 1.2], ["1 process", "2 processes"])
     axes[1].set_title("π-StepNFT learner (DDP, gloo)")
-    axes[1].set_ylabel("samples / s")
+    axes[1].set_ylabel("samples / s, relative to 1 process")
+    axes[1].legend()
     names = list(results["push"])
     kinds = ("whole_s", "changed_s", "unchanged_s")
     for j, kind in enumerate(kinds):
@@ -246,30 +323,34 @@ def main(argv=None) -> dict:
     rollout_spec = make_algorithm(cfg.algo, policy, 1, torch.Generator()).rollout
     results = {"rollout": {}, "learner": {}, "push": {}}
 
-    local = Collector(make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed), seed=cfg.seed)
-    results["rollout"]["0"] = time_rollouts(local, policy, rollout_spec, args.waves)
-    local.close()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False)  # 1 + 2 workers, alive together
+    collectors = {"0": Collector(make_vec_env(cfg.env, cfg.policy.n_exec, cfg.seed), seed=cfg.seed)}
     try:
         for workers in (1, 2):
-            collector = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, RayConfig(workers=workers), cfg.num_threads)
-            try:
-                results["rollout"][str(workers)] = time_rollouts(collector, policy, rollout_spec, args.waves)
-                if workers == 2:
-                    results["push"]["default"] = time_pushes(collector, policy, args.pushes)
-                    if args.push_hidden_dim:
-                        wide = make_policy(dataclasses.replace(cfg.policy, hidden_dim=args.push_hidden_dim, num_layers=6))
-                        wide.processor = policy.processor
-                        results["push"][f"hidden {args.push_hidden_dim}"] = time_pushes(collector, wide, args.pushes)
-            finally:
-                collector.close()
+            collectors[str(workers)] = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, RayConfig(workers=workers),
+                                                    cfg.num_threads)
+        collectors["plain 2"] = PlainProcesses(cfg, policy, rollout_spec)
+        results["rollout"] = time_rollouts(collectors, policy, rollout_spec, args.waves)
+        collectors.pop("plain 2").close()
+        collectors.pop("1").close()  # idle from here; the pushes go to the 2 workers
+        results["push"]["default"] = time_pushes(collectors["2"], policy, args.pushes)
+        if args.push_hidden_dim:
+            wide = make_policy(dataclasses.replace(cfg.policy, hidden_dim=args.push_hidden_dim, num_layers=6))
+            wide.processor = policy.processor
+            results["push"][f"hidden {args.push_hidden_dim}"] = time_pushes(collectors["2"], wide, args.pushes)
     finally:
+        for collector in collectors.values():
+            collector.close()
         ray.shutdown()
     batch = results["rollout"]["2"].pop("last_batch")
-    for key in ("0", "1"):
+    for key in ("0", "1", "plain 2"):
         results["rollout"][key].pop("last_batch")
-    for world in (1, 2):
-        results["learner"][str(world)] = time_learner(policy, batch, cfg.algo, world, args.updates)
+    results["learner"] = measure_learner(policy, batch, cfg.algo, args)
+    if args.learner_hidden_dim:
+        wide = make_policy(dataclasses.replace(cfg.policy, hidden_dim=args.learner_hidden_dim))
+        wide.processor = policy.processor
+        results["learner_wide"] = measure_learner(wide, batch, cfg.algo, args)
+        results["learner_wide"]["policy_params"] = sum(p.numel() for p in wide.parameters())
     results["learner"]["batch_samples"] = batch.num_steps
     results["args"] = vars(args)
     results["projection"] = project(results, cfg, args)

@@ -157,10 +157,11 @@ class RayConfig:
 
     workers: int = 0
     """Ray rollout workers (0: collect in this process, the default); sub-env i plays on worker
-    i mod N, and evaluation runs on them too."""
+    i mod N, and evaluation runs on them too. Each reserves max(1, env.num_workers) CPUs: with
+    --env.num-workers 0 a worker is one core."""
     address: str | None = None
     """Ray cluster to join (``auto``, ``HOST:6379`` or ``ray://HOST:10001``); None: start a
-    local Ray with one CPU per worker."""
+    local Ray with the CPUs the workers reserve."""
     timeout_s: float = 600.0
     """Seconds a worker may take to start or to play one wave before it counts as hung: it is
     killed and restarted, its episodes of that wave dropped."""

@@ -199,6 +199,12 @@ class RayCollector(Collector):
             env_vars = {k: os.environ[k] for k in ("MUJOCO_GL",) if k in os.environ}
             ray.init(address=ray_cfg.address, num_cpus=None if ray_cfg.address else ray_cfg.workers * cpus,
                      include_dashboard=False, runtime_env={"env_vars": env_vars} if env_vars else None)
+        needed, available = ray_cfg.workers * cpus, ray.cluster_resources().get("CPU", 0)
+        if needed > available:  # an existing cluster too small: Ray would queue the workers silently
+            print(f"stepnft: the {ray_cfg.workers} Ray rollout workers need {needed:g} CPUs "
+                  f"(max(1, env.num_workers)={cpus} each) but the Ray cluster has {available:g}; they wait for "
+                  f"more nodes up to ray.timeout_s={ray_cfg.timeout_s}s (fewer --ray.workers or "
+                  "--env.num-workers 0 fit now)", file=sys.stderr)
         try:
             actor_class = ray.remote(RolloutWorker).options(
                 num_cpus=cpus, max_restarts=ray_cfg.max_restarts, max_task_retries=0, scheduling_strategy="SPREAD")
@@ -210,7 +216,8 @@ class RayCollector(Collector):
             self.close()
             if isinstance(err, ray.exceptions.GetTimeoutError):
                 raise RuntimeError(f"the Ray rollout workers did not start within ray.timeout_s={ray_cfg.timeout_s}s "
-                                   "(is stepnft installed on every node?)") from err
+                                   f"(is stepnft installed on every node? they need {needed:g} CPUs, the "
+                                   f"cluster has {available:g})") from err
             raise
         for w, (w.incarnation, states) in zip(self.workers, hellos):
             for i, state in zip(w.sub_envs, states):

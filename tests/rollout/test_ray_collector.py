@@ -229,6 +229,17 @@ def test_a_worker_lost_too_often_stops_with_an_error(synced):
         remote.cfg = replace(remote.cfg, max_restarts=limit)
 
 
+def test_workers_that_do_not_fit_the_cluster_say_so_and_time_out(ray_instance, capsys):
+    from stepnft.rollout.ray_collector import RayCollector
+
+    # 2 workers x 3 simulator processes need 6 CPUs; the test's Ray has 4: Ray would queue them
+    # silently, so the collector says so at once and gives up after ray.timeout_s.
+    env = replace(ENV, num_workers=3)
+    with pytest.raises(RuntimeError, match="need 6 CPUs, the cluster has 4"):
+        RayCollector(env, 4, SEED, RayConfig(workers=2, timeout_s=3))
+    assert "need 6 CPUs (max(1, env.num_workers)=3 each) but the Ray cluster has 4" in capsys.readouterr().err
+
+
 SHUTDOWN_SCRIPT = textwrap.dedent("""
     import json, os, time
     from stepnft.algos.base import RolloutSpec
