@@ -137,7 +137,9 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
         base, env=dataclasses.replace(base.env, tasks=list(tasks)), env_step_budget=budget, num_threads=1, init=None,
         iterations=max(base.iterations, math.ceil(budget / base.episodes_per_iteration)),
         eval=dataclasses.replace(base.eval, episodes=cmd.eval_episodes or base.eval.episodes))
-    out = prepare_run_dir(cmd.out).resolve()
+    # As given (relative to the working directory, as every run's --run-dir): the saved configs
+    # then move with the folder.
+    out = prepare_run_dir(cmd.out)
     settings = to_dict(base)
     for per_run in ("run_dir", "seed", "init"):
         settings.pop(per_run)
