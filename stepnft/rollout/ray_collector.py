@@ -74,6 +74,17 @@ def _fingerprint(policy: Policy) -> tuple[str, dict[str, tuple[int, int]]]:
     return structure, {name: (t.data_ptr(), t._version) for name, t in tensors.items()}
 
 
+def _join_hint(address: str | None, err: Exception) -> str:
+    """Ray's failure to join ``address``, with the two usual causes."""
+    hint = f"{err} (--ray.address {address}): is the cluster running (`ray status`)?"
+    if os.environ.get("RAY_AUTH_MODE") is None and address not in (None, "auto"):
+        # Ray authenticates with a token once one exists (~/.ray/auth_token) but sends it to an
+        # explicit address only when told to.
+        hint += (" If it was started with token authentication, export RAY_AUTH_MODE=token (the token in "
+                 "~/.ray/auth_token or RAY_AUTH_TOKEN), or use --ray.address auto on the head node")
+    return hint
+
+
 class RolloutWorker:
     """One Ray actor: sub-envs ``sub_envs`` of the run's vector env (the same tasks and seeds),
     stepped in this process (or ``env.num_workers`` processes), and copies of the policies
@@ -197,8 +208,11 @@ class RayCollector(Collector):
         cpus = max(1, env_cfg.num_workers)  # a worker with env.num_workers steps its envs in that many processes
         if self._owns_ray:
             env_vars = {k: os.environ[k] for k in ("MUJOCO_GL",) if k in os.environ}
-            ray.init(address=ray_cfg.address, num_cpus=None if ray_cfg.address else ray_cfg.workers * cpus,
-                     include_dashboard=False, runtime_env={"env_vars": env_vars} if env_vars else None)
+            try:
+                ray.init(address=ray_cfg.address, num_cpus=None if ray_cfg.address else ray_cfg.workers * cpus,
+                         include_dashboard=False, runtime_env={"env_vars": env_vars} if env_vars else None)
+            except ConnectionError as err:
+                raise ConnectionError(_join_hint(ray_cfg.address, err)) from err
         needed, available = ray_cfg.workers * cpus, ray.cluster_resources().get("CPU", 0)
         if needed > available:  # an existing cluster too small: Ray would queue the workers silently
             print(f"stepnft: the {ray_cfg.workers} Ray rollout workers need {needed:g} CPUs "

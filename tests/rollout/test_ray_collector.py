@@ -3,15 +3,20 @@ they changed, lost and hung workers restarted with their episodes dropped, evalu
 workers, nothing left running after close. One local Ray (2 CPUs) serves the module; the
 merging of workers' parts is tested without Ray."""
 
+import contextlib
 import json
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import textwrap
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,6 +243,66 @@ def test_workers_that_do_not_fit_the_cluster_say_so_and_time_out(ray_instance, c
     with pytest.raises(RuntimeError, match="need 6 CPUs, the cluster has 4"):
         RayCollector(env, 4, SEED, RayConfig(workers=2, timeout_s=3))
     assert "need 6 CPUs (max(1, env.num_workers)=3 each) but the Ray cluster has 4" in capsys.readouterr().err
+
+
+def test_train_joins_an_existing_cluster(tmp_path):
+    """`--ray.address` joins a cluster started with `ray start`: the run's workers play there and
+    the cluster outlives the run (the driver only disconnects)."""
+    pytest.importorskip("ray", reason='the Ray tests need the ray extra: pip install "stepnft[ray]"')
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    temp_dir = tempfile.mkdtemp(prefix="stepnft-ray-", dir="/tmp")  # Ray's socket paths must stay short
+    # Token authentication is Ray's business (docs/scaling.md says how to pass the token): off here.
+    env = os.environ | {"RAY_AUTH_MODE": "disabled"}
+    head = subprocess.Popen([str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", "--port",
+                             str(port), "--num-cpus", "2", "--node-ip-address", "127.0.0.1", "--include-dashboard",
+                             "false", "--temp-dir", temp_dir], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        torch.manual_seed(0)
+        FlowPolicy(FlowPolicyConfig(lang_dim=0, hidden_dim=32, num_layers=1)).save_pretrained(tmp_path / "init")
+        run = tmp_path / "run"
+        argv = [sys.executable, "-m", "stepnft.cli", "train", "--run-dir", str(run), "--init", str(tmp_path / "init"),
+                "--policy.lang-dim", "0", "--policy.hidden-dim", "32", "--policy.num-layers", "1", "--iterations", "2",
+                "--episodes-per-iteration", "4", "--env.tasks", "reach-v3", "--env.envs-per-task", "4",
+                "--env.max-episode-steps", "20", "--eval.episodes", "4", "--eval.every", "0",
+                "--algo.minibatch-size", "32", "--ray.workers", "2", "--ray.address", f"127.0.0.1:{port}",
+                "--ray.timeout-s", "120"]
+        deadline = time.time() + 90
+        while True:  # the head is up when its GCS port answers
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            assert head.poll() is None and time.time() < deadline, "ray start --head did not come up"
+            time.sleep(0.5)
+        out = subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert "Connecting to existing Ray cluster" in out.stderr
+        assert json.loads((run / "summary.json").read_text())["iterations"] == 2
+        assert head.poll() is None  # the run left the cluster running
+    finally:
+        head.terminate()
+        try:
+            head.wait(timeout=60)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(head.pid, signal.SIGKILL)
+            shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def test_a_cluster_that_cannot_be_joined_gets_a_hint(monkeypatch):
+    ray = pytest.importorskip("ray", reason='the Ray tests need the ray extra: pip install "stepnft[ray]"')
+    from stepnft.rollout.ray_collector import RayCollector
+
+    def refuse(*args, **kwargs):
+        raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", refuse)
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    with pytest.raises(ConnectionError, match="is the cluster running.*export RAY_AUTH_MODE=token"):
+        RayCollector(ENV, 4, SEED, RayConfig(workers=2, address="10.0.0.1:6379"))
 
 
 SHUTDOWN_SCRIPT = textwrap.dedent("""
