@@ -98,8 +98,9 @@ def time_rollouts(collectors: dict, policy, spec, waves: int) -> dict:
 
 
 def _plain_worker(pipe, env_cfg, n_exec: int, seed: int, sub_envs: list[int], policy, spec, num_threads: int):
-    torch.set_num_threads(num_threads)
-    collector = Collector(make_vec_env(env_cfg, n_exec, seed, sub_envs=sub_envs))
+    from stepnft.rollout.ray_collector import RolloutWorker
+
+    collector = RolloutWorker(env_cfg, n_exec, seed, sub_envs, num_threads).collector  # a Ray worker's body
     while pipe.recv():
         pipe.send(collector.collect(policy, len(sub_envs), spec).episode_length)
     collector.close()
@@ -109,11 +110,11 @@ class PlainProcesses:
     """The machine's own ceiling for 2 workers: the Ray workers' shards played by plain processes
     (no Ray, no driver traffic), a wave ending when both are done."""
 
-    def __init__(self, cfg, policy, spec, workers: int = 2):
+    def __init__(self, cfg, policy, spec, num_envs: int, workers: int = 2):
         ctx = mp.get_context("spawn")
-        self.num_envs = len(cfg.env.tasks) * cfg.env.envs_per_task
+        self.num_envs = num_envs
         self.pipes, self.processes = [], []
-        for shard in shard_ranges(self.num_envs, workers, "interleave"):
+        for shard in shard_ranges(num_envs, workers, "interleave"):
             parent, child = ctx.Pipe()
             process = ctx.Process(target=_plain_worker, daemon=True,
                                   args=(child, cfg.env, cfg.policy.n_exec, cfg.seed, list(shard), policy, spec,
@@ -329,7 +330,7 @@ def main(argv=None) -> dict:
         for workers in (1, 2):
             collectors[str(workers)] = RayCollector(cfg.env, cfg.policy.n_exec, cfg.seed, RayConfig(workers=workers),
                                                     cfg.num_threads)
-        collectors["plain 2"] = PlainProcesses(cfg, policy, rollout_spec)
+        collectors["plain 2"] = PlainProcesses(cfg, policy, rollout_spec, collectors["0"].num_envs)
         results["rollout"] = time_rollouts(collectors, policy, rollout_spec, args.waves)
         collectors.pop("plain 2").close()
         collectors.pop("1").close()  # idle from here; the pushes go to the 2 workers
