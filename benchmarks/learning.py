@@ -10,6 +10,7 @@ the average and every task, one line per seed). A seed whose run folder already 
 
     .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
     .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
+    .venv/bin/python benchmarks/learning.py --set algo.labels=progress --out benchmarks/results/learning_progress
 """
 
 from __future__ import annotations
@@ -18,10 +19,13 @@ import argparse
 import dataclasses
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
-from stepnft.config import DEFAULT_TASKS, load_config
+import yaml
+
+from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, to_dict
 from stepnft.runs import read_metrics, save_panels, task_panels
 from stepnft.train import train
 
@@ -36,8 +40,34 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="per-task demonstration counts, e.g. door-open-v3=1 (default: the config's)")
     p.add_argument("--env-steps", type=int, default=None, help="RL env-step budget per run (default: the config's)")
     p.add_argument("--eval-episodes", type=int, default=100, help="test episodes per task (>= 100 for reported figures)")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="config fields to change, as YAML values, e.g. algo.labels=progress")
     p.add_argument("--out", default="benchmarks/results/learning", help="folder for runs and the result table")
     return p.parse_args(argv)
+
+
+def with_fields(cfg: TrainConfig, items: list[str]) -> TrainConfig:
+    """``cfg`` with ``KEY=VALUE`` fields changed (dotted keys, YAML values), checked as a config file is."""
+    data = to_dict(cfg)
+    for item in items:
+        key, sep, value = item.partition("=")
+        *sections, leaf = key.split(".")
+        node = data
+        for section in sections:
+            node = node.get(section) if isinstance(node, dict) else None
+        if not sep or not isinstance(node, dict):
+            _fail(f"--set {item}: expected [SECTION.]FIELD=VALUE with an existing section, e.g. algo.labels=progress")
+        node[leaf] = yaml.safe_load(value)
+    try:
+        return from_dict(TrainConfig, data)
+    except ValueError as err:
+        _fail(f"--set: {err}")
+
+
+def _fail(message: str) -> None:
+    """Bad input: one line on stderr, exit code 2."""
+    print(f"learning.py: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def fmt(rates: list[float]) -> str:
@@ -80,7 +110,7 @@ def plot(out: Path, runs: list[dict], tasks: list[str]) -> Path:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    base = load_config(args.config)
+    base = with_fields(load_config(args.config), args.set)
     tasks = list(args.tasks or base.env.tasks or DEFAULT_TASKS)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -81,6 +81,19 @@ class StepNFTConfig(AlgoConfig):
     """Beyond the paper: give weight 0 to the samples of a task whose episodes in this iteration
     all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's
     zero-advantage groups)."""
+    labels: Literal["episode", "progress"] = "episode"
+    """Beyond the paper: ``episode`` (paper): every step of an episode carries its outcome ±1;
+    ``progress``: each policy call's label mixes that outcome with how much the call moved the
+    simulator's shaped reward (a per-call credit without a critic; ``call_progress``). Needs a
+    simulator whose reward measures progress (MetaWorld's does); PPO and GRPO here use the
+    sparse success only."""
+    progress_mix: float = 0.5
+    """With ``labels: progress``: the share of the label from progress, in [0, 1]; a call's label
+    is ``(1 - mix) * outcome + mix * tanh(progress / its task's std)``, in [-1, 1]."""
+    progress_lambda: float = 0.8
+    """With ``labels: progress``: how far ahead a call's progress looks, in [0, 1): the reward
+    level after the call is ``(1 - λ) Σ_l λ^l r_{c+l}`` over the episode's following calls (the
+    last level held after its end), compared with the level of the call before."""
     drift_limit: float | None = None
     """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
@@ -104,6 +117,9 @@ class StepNFTConfig(AlgoConfig):
             "group_size": self.group_size >= 1 and (self.label_balance != "group" or self.group_size > 1),
             "sde_steps": self.sde_steps in ("all", "one"),
             "record_steps": self.record_steps in ("one", "all"),
+            "labels": self.labels in ("episode", "progress"),
+            "progress_mix": finite(self.progress_mix) and 0 <= self.progress_mix <= 1,
+            "progress_lambda": finite(self.progress_lambda) and 0 <= self.progress_lambda < 1,
         }
 
     def __post_init__(self) -> None:
@@ -155,6 +171,44 @@ def episode_groups(batch: Batch) -> Tensor:
     return keys.unique(dim=0, return_inverse=True)[1]
 
 
+def call_progress(batch: Batch, lam: float) -> Tensor:
+    """``[C]`` how much each policy call raised the shaped reward: the λ-averaged reward level
+    from this call on, ``G_c = (1 - λ) r_c + λ G_{c+1}`` (``r`` the mean reward per executed env
+    step; after the episode's last call its level holds), minus the level of the call before
+    (the first call: its own). With a reward that is a function of the state (a potential, as
+    MetaWorld's shaping is), this is the call's effect on where the episode is heading."""
+    level = (batch.reward / batch.mask.sum(dim=1).clamp(min=1)).tolist()
+    episode = batch.episode.tolist()
+    progress = [0.0] * len(level)
+    ahead: dict[int, float] = {}  # episode -> G of its next call
+    for c in reversed(range(len(level))):  # the calls of an episode are in row order
+        ahead[episode[c]] = (1 - lam) * level[c] + lam * ahead.get(episode[c], level[c])
+        progress[c] = ahead[episode[c]]
+    before: dict[int, float] = {}
+    for c in range(len(level)):
+        progress[c] -= before.get(episode[c], level[c])
+        before[episode[c]] = level[c]
+    return torch.tensor(progress, dtype=torch.float32)
+
+
+def step_labels(batch: Batch, cfg: StepNFTConfig) -> Tensor:
+    """``[N]`` labels of the recorded steps: the episode's outcome ±1 (``labels: episode``), or
+    mixed with the call's progress normalised within its task (``labels: progress``; a task
+    whose reward did not move in this batch keeps the outcome alone)."""
+    outcome = batch.episode_success[batch.episode].float() * 2 - 1  # [C]
+    if cfg.labels == "episode":
+        return outcome[batch.call]
+    progress = call_progress(batch, cfg.progress_lambda)
+    task = batch.obs["task"]
+    scaled = outcome.clone()  # a task whose reward never moved (e.g. a sparse 0/1 one) keeps its outcome
+    for g in task.unique():
+        in_g = task == g
+        std = progress[in_g].std(unbiased=False)
+        if std > 1e-6:
+            scaled[in_g] = torch.tanh(progress[in_g] / std)
+    return ((1 - cfg.progress_mix) * outcome + cfg.progress_mix * scaled)[batch.call]
+
+
 def sample_weights(batch: Batch, y: Tensor, cfg: StepNFTConfig) -> Tensor | None:
     """``[N]`` weights of the recorded steps from the options above (None: uniform)."""
     weights = episode_weights(batch.step_episode) if cfg.episode_weighting else None
@@ -177,13 +231,14 @@ def stepnft_update(
     guard: NonFiniteGuard | None = None,
 ) -> dict[str, float]:
     """Run ``cfg.update_epochs`` epochs of minibatch π-StepNFT steps over ``batch``'s recorded
-    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary). Steps
-    with a non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over
-    minibatch steps, under stable names. Under ``torchrun`` the processes share each minibatch
-    (``stepnft.distributed``): the same steps as one process."""
+    steps; labels ``y = ±1`` are the outcome of each step's episode (terminal-binary), or with
+    ``labels: progress`` per call (``step_labels``). Steps with a non-finite loss or gradient
+    are skipped (``guard``). Returns metrics averaged over minibatch steps, under stable names.
+    Under ``torchrun`` the processes share each minibatch (``stepnft.distributed``): the same
+    steps as one process."""
     guard = guard or NonFiniteGuard(cfg)
     learner = data_parallel(policy)
-    y = batch.step_success.float() * 2 - 1
+    y = step_labels(batch, cfg)
     weights = sample_weights(batch, y, cfg)
     sums: dict[str, float] = defaultdict(float)
     seen = steps = skipped = 0

@@ -25,7 +25,7 @@ class Variant:
 
 PAPER_ALGO: dict[str, Any] = {
     "noise_level": 0.2, "beta": 1.0, "beta_dpo": 1.0, "max_drift": 0.5, "kl_beta": 1e-4, "target": "next",
-    "form": "rank", "sde_steps": "all", "record_steps": "one", "label_balance": "none", "episode_weighting": False,
+    "form": "rank", "sde_steps": "all", "record_steps": "one", "labels": "episode", "label_balance": "none", "episode_weighting": False,
     "drift_limit": None, "ema_base": 0.1, "ema_target": 0.995, "eval_ema": True,
     "adam_betas": (0.9, 0.95), "adam_eps": 1e-5, "weight_decay": 0.01, "grad_clip": 1.0,
 }
@@ -46,6 +46,10 @@ VARIANTS: dict[str, Variant] = {
     "ema-off": Variant("stepnft", "ablation: no EMA, the trained policy acts (decay 0)",
                        {"ema_base": 0.0, "ema_target": 0.0}),
     "ema-slow": Variant("stepnft", "ablation: slower EMA, decay 0.5 -> 0.999", {"ema_base": 0.5, "ema_target": 0.999}),
+    "progress": Variant("stepnft", "per-call labels: outcome mixed with the call's shaped-reward progress",
+                        {"labels": "progress"}),
+    "episode-labels": Variant("stepnft", "ablation: one ±1 outcome label per episode (the paper's labels)",
+                              {"labels": "episode"}),
     "ppo": Variant("ppo", "PPO with Flow-SDE and a critic, every denoising step stochastic"),
     "ppo-one": Variant("ppo", "PPO with Flow-SDE, one stochastic step per call (πRL)", {"sde_steps": "one"}),
     "grpo": Variant("grpo", "GRPO with Flow-SDE, group-normalised success, every step stochastic"),

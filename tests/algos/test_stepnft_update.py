@@ -207,3 +207,32 @@ def test_group_balance_compares_episodes_from_one_initial_state():
     torch.testing.assert_close(w[:4], torch.tensor([2.0, 2 / 3, 2 / 3, 2 / 3]))
     assert w[4:6].tolist() == [1.0, 1.0]  # a group with one outcome only keeps its weights
     assert StepNFT(policy, StepNFTConfig(group_size=4, label_balance="group"), 1, torch.Generator()).rollout.group_size == 4
+
+
+def test_progress_labels_credit_the_calls_that_raised_the_reward():
+    from tests.algos.test_policy_gradient import make_batch as make_episodes
+    from stepnft.algos.stepnft import call_progress, step_labels
+
+    # Two interleaved episodes of one task: ep 0 (calls 0, 2, 4) fails, ep 1 (calls 1, 3) succeeds.
+    _, batch = make_episodes([0, 1, 0, 1, 0], success=[False, True])
+    batch.mask[4, 1] = False  # the last call of ep 0 executed one env step of two
+    batch.reward = torch.tensor([2.0, 0.0, 6.0, 4.0, 1.0])  # per-step levels: ep 0 1, 3, 1; ep 1 0, 2
+    lam = 0.5
+    # ep 0: G4 = 1, G2 = 0.5*3 + 0.5*1 = 2, G0 = 0.5*1 + 0.5*2 = 1.5 -> progress 1.5-1, 2-1, 1-3
+    # ep 1: G3 = 2, G1 = 0.5*0 + 0.5*2 = 1 -> progress 1-0, 2-0
+    torch.testing.assert_close(call_progress(batch, lam), torch.tensor([0.5, 1.0, 1.0, 2.0, -2.0]))
+
+    episode_labels = step_labels(batch, StepNFTConfig())
+    torch.testing.assert_close(episode_labels, (batch.step_success.float() * 2 - 1))
+    y_call = step_labels(dataclasses.replace(batch, call=torch.arange(5)),
+                         StepNFTConfig(labels="progress", progress_lambda=lam, progress_mix=0.5))
+    p = torch.tensor([0.5, 1.0, 1.0, 2.0, -2.0])
+    expected = 0.5 * torch.tensor([-1.0, 1, -1, 1, -1]) + 0.5 * torch.tanh(p / p.std(unbiased=False))
+    torch.testing.assert_close(y_call, expected)
+    # The failing episode's call that raised the reward is pushed away less than the one that lost it.
+    assert y_call[2] > y_call[4] and y_call.abs().max() <= 1
+    # A reward that never moves (sparse, or none) leaves the outcome labels as they are.
+    flat = dataclasses.replace(batch, call=torch.arange(5), reward=torch.zeros(5))
+    torch.testing.assert_close(step_labels(flat, StepNFTConfig(labels="progress")), torch.tensor([-1.0, 1, -1, 1, -1]))
+    with pytest.raises(ValueError, match="algo.progress_mix"):
+        StepNFTConfig(labels="progress", progress_mix=1.5)
