@@ -10,7 +10,8 @@ the average and every task, one line per seed). A seed whose run folder already 
 
     .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
     .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
-    .venv/bin/python benchmarks/learning.py --set algo.labels=progress --out benchmarks/results/learning_progress
+    .venv/bin/python benchmarks/learning.py --set algo.labels=episode --out benchmarks/results/learning_episode \
+        --paired-with benchmarks/results/learning_quickstart
 """
 
 from __future__ import annotations
@@ -42,6 +43,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--eval-episodes", type=int, default=100, help="test episodes per task (>= 100 for reported figures)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="config fields to change, as YAML values, e.g. algo.labels=progress")
+    p.add_argument("--paired-with", nargs="*", default=[], metavar="DIR",
+                   help="other result folders of this script (or of stepnft compare: its runs/VARIANT) whose runs "
+                        "of the same seeds started from the same SFT policy: adds paired differences with 95 %% CIs")
     p.add_argument("--out", default="benchmarks/results/learning", help="folder for runs and the result table")
     return p.parse_args(argv)
 
@@ -96,6 +100,33 @@ def table(runs: list[dict], tasks: list[str]) -> str:
     return "\n".join(lines)
 
 
+def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
+    """Markdown: this folder's final success minus each other folder's, seed by seed (same SFT
+    start), per task and on average over every (seed, task) pair, with 95 % t-intervals."""
+    from stepnft.compare import mean_ci
+
+    cell = lambda stats: "–" if stats[0] != stats[0] else (  # noqa: E731
+        f"{stats[0]:+.2f}" + ("" if stats[1] != stats[1] else f" [{stats[1]:+.2f}, {stats[2]:+.2f}]"))
+    lines = ["| this minus | seeds | " + " | ".join(tasks) + " | average |", "|---" * (len(tasks) + 3) + "|"]
+    for other in others:
+        diffs: dict[str, list[float]] = {t: [] for t in tasks}
+        seeds = []
+        for r in runs:
+            path = Path(other) / f"seed{r['seed']}" / "summary.json"
+            if not path.is_file():
+                continue
+            theirs = json.loads(path.read_text())
+            if abs(theirs["average"]["before"] - r["average"]["before"]) > 1e-9:
+                raise SystemExit(f"{path}: seed {r['seed']} started from another SFT policy; no pairing")
+            seeds.append(r["seed"])
+            for t in tasks:
+                diffs[t].append(r["tasks"][t]["after"]["success"] - theirs["tasks"][t]["after"]["success"])
+        every = [d for t in tasks for d in diffs[t]]
+        lines.append(f"| {other} | {len(seeds)} | " + " | ".join(cell(mean_ci(diffs[t], -1, 1)) for t in tasks)
+                     + f" | **{cell(mean_ci(every, -1, 1))}** |")
+    return "\n".join(lines)
+
+
 def plot(out: Path, runs: list[dict], tasks: list[str]) -> Path:
     panels = [("average", "charts/validation_success_rate")] + [(t, f"validation/{t}") for t in tasks]
     fig, axes = task_panels([p[0] for p in panels])
@@ -138,10 +169,14 @@ def main(argv=None) -> dict:
         runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary})
 
     steps = [float(r["env_steps"]) for r in runs]
-    wall = [r.get("wall_clock_s", float("nan")) for r in runs]
+    wall = [r.get("wall_clock_s", r.get("wall_clock_s_this_session", float("nan"))) for r in runs]
     text = (table(runs, tasks) + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
             f"3 test evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
-            f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}.")
+            f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}"
+            + (f" with {' '.join(args.set)}" if args.set else "") + ".")
+    if args.paired_with:
+        text += "\n\nPaired differences of the final success (this minus the other, same seed and SFT start; the " \
+                "average over every seed and task):\n\n" + paired_table(runs, tasks, args.paired_with)
     print(text)
     (out / "learning.md").write_text(text + "\n")
     plot(out, runs, tasks)
