@@ -200,7 +200,7 @@ def step_labels(batch: Batch, cfg: StepNFTConfig) -> Tensor:
         return outcome[batch.call]
     progress = call_progress(batch, cfg.progress_lambda)
     task = batch.obs["task"]
-    scaled = outcome.clone()  # a task whose reward never moved (e.g. a sparse 0/1 one) keeps its outcome
+    scaled = outcome.clone()  # a task whose reward never moved keeps its outcome
     for g in task.unique():
         in_g = task == g
         std = progress[in_g].std(unbiased=False)
