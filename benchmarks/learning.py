@@ -103,10 +103,8 @@ def table(runs: list[dict], tasks: list[str]) -> str:
 def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
     """Markdown: this folder's final success minus each other folder's, seed by seed (same SFT
     start), per task and on average over every (seed, task) pair, with 95 % t-intervals."""
-    from stepnft.compare import mean_ci
+    from stepnft.compare import format_ci, mean_ci
 
-    cell = lambda stats: "–" if stats[0] != stats[0] else (  # noqa: E731
-        f"{stats[0]:+.2f}" + ("" if stats[1] != stats[1] else f" [{stats[1]:+.2f}, {stats[2]:+.2f}]"))
     lines = ["| this minus | seeds | " + " | ".join(tasks) + " | average |", "|---" * (len(tasks) + 3) + "|"]
     for other in others:
         diffs: dict[str, list[float]] = {t: [] for t in tasks}
@@ -117,13 +115,14 @@ def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
                 continue
             theirs = json.loads(path.read_text())
             if abs(theirs["average"]["before"] - r["average"]["before"]) > 1e-9:
-                raise SystemExit(f"{path}: seed {r['seed']} started from another SFT policy; no pairing")
+                _fail(f"--paired-with {other}: seed {r['seed']} started from another SFT policy ({path}); no pairing")
             seeds.append(r["seed"])
             for t in tasks:
                 diffs[t].append(r["tasks"][t]["after"]["success"] - theirs["tasks"][t]["after"]["success"])
         every = [d for t in tasks for d in diffs[t]]
-        lines.append(f"| {other} | {len(seeds)} | " + " | ".join(cell(mean_ci(diffs[t], -1, 1)) for t in tasks)
-                     + f" | **{cell(mean_ci(every, -1, 1))}** |")
+        lines.append(f"| {other} | {len(seeds)} | "
+                     + " | ".join(format_ci(mean_ci(diffs[t], -1, 1), signed=True) for t in tasks)
+                     + f" | **{format_ci(mean_ci(every, -1, 1), signed=True)}** |")
     return "\n".join(lines)
 
 

@@ -79,6 +79,14 @@ def setup(args):
     return cfg, policy.eval()
 
 
+def wider_policy(cfg, policy, **sizes):
+    """A fresh policy of other ``sizes`` (hidden_dim, num_layers) with ``policy``'s processor, so it
+    reads the same observations and normalisation."""
+    wide = make_policy(dataclasses.replace(cfg.policy, **sizes))
+    wide.processor = policy.processor
+    return wide
+
+
 # --- rollouts ---------------------------------------------------------------------------------
 def time_rollouts(collectors: dict, policy, spec, waves: int) -> dict:
     """Env steps/s of each collector, timed wave by wave in turns (one wave of each, ``waves``
@@ -231,6 +239,12 @@ def project(results: dict, cfg, args) -> list[dict]:
 
 
 # --- report -----------------------------------------------------------------------------------
+def learner_settings(results: dict) -> list[tuple[str, str]]:
+    """The learner timings present in ``results``: (key, label)."""
+    settings = (("learner", "default policy"), ("learner_wide", f"hidden {results['args']['learner_hidden_dim']}"))
+    return [(name, label) for name, label in settings if name in results]
+
+
 def report(results: dict, out: Path) -> str:
     r, a, lines = results, results["args"], []
     lines += ["| rollouts | env steps/s | speed-up vs 1 worker |", "|---|---|---|"]
@@ -242,8 +256,8 @@ def report(results: dict, out: Path) -> str:
     lines += ["", f"Medians of {len(turns)} waves each, taken in turns; 2 workers / 1 worker turn by turn: median "
               f"{statistics.median(turns):.2f}x, range {min(turns):.2f}x to {max(turns):.2f}x."]
     lines += ["", "| learner | samples/s | speed-up |", "|---|---|---|"]
-    for name, label in (("learner", "default policy"), ("learner_wide", f"hidden {a['learner_hidden_dim']}")):
-        for key in ("1", "2") if name in r else ():
+    for name, label in learner_settings(r):
+        for key in ("1", "2"):
             lines.append(f"| {key} DDP process{'es' if key == '2' else ''}, {label} | {r[name][key]['samples_per_s']:.0f} | "
                          f"{r[name][key]['samples_per_s'] / r[name]['1']['samples_per_s']:.2f}x |")
     lines += ["", "| weight push (2 workers) | MB | new policy | all tensors changed | unchanged |", "|---|---|---|---|---|"]
@@ -276,10 +290,7 @@ def plot(results: dict, path: Path) -> None:
                 [roll[k]["env_steps_per_s"] for k in ("0", "1", "2", "plain 2")])
     axes[0].set_title("rollouts (learner idle)")
     axes[0].set_ylabel("env steps / s")
-    learners = [(name, label) for name, label in (("learner", "default policy"),
-                                                  ("learner_wide", f"hidden {results['args']['learner_hidden_dim']}"))
-                if name in results]
-    for j, (name, label) in enumerate(learners):
+    for j, (name, label) in enumerate(learner_settings(results)):
         learn = results[name]
         axes[1].bar([i + 0.4 * j for i in range(2)], [learn[k]["samples_per_s"] / learn["1"]["samples_per_s"]
                                                      for k in ("1", "2")], width=0.4, label=label)
@@ -336,8 +347,7 @@ def main(argv=None) -> dict:
         collectors.pop("1").close()  # idle from here; the pushes go to the 2 workers
         results["push"]["default"] = time_pushes(collectors["2"], policy, args.pushes)
         if args.push_hidden_dim:
-            wide = make_policy(dataclasses.replace(cfg.policy, hidden_dim=args.push_hidden_dim, num_layers=6))
-            wide.processor = policy.processor
+            wide = wider_policy(cfg, policy, hidden_dim=args.push_hidden_dim, num_layers=6)
             results["push"][f"hidden {args.push_hidden_dim}"] = time_pushes(collectors["2"], wide, args.pushes)
     finally:
         for collector in collectors.values():
@@ -348,8 +358,7 @@ def main(argv=None) -> dict:
         results["rollout"][key].pop("last_batch")
     results["learner"] = measure_learner(policy, batch, cfg.algo, args)
     if args.learner_hidden_dim:
-        wide = make_policy(dataclasses.replace(cfg.policy, hidden_dim=args.learner_hidden_dim))
-        wide.processor = policy.processor
+        wide = wider_policy(cfg, policy, hidden_dim=args.learner_hidden_dim)
         results["learner_wide"] = measure_learner(wide, batch, cfg.algo, args)
         results["learner_wide"]["policy_params"] = sum(p.numel() for p in wide.parameters())
     results["learner"]["batch_samples"] = batch.num_steps

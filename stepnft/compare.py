@@ -451,7 +451,8 @@ def _mean(values: list) -> float:
     return statistics.fmean(values) if values else math.nan
 
 
-def _cell(stats: tuple[float, float, float], signed: bool = False) -> str:
+def format_ci(stats: tuple[float, float, float], signed: bool = False) -> str:
+    """``mean [lo, hi]`` of :func:`mean_ci`'s triple (``–`` without a mean, no interval without one)."""
     mean, lo, hi = stats
     if math.isnan(mean):
         return "–"
@@ -486,17 +487,17 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
     for name, row in rows.items():
         runs = f"{row['finished']}/{row['runs']}" + (f" ({len(row['crashed'])} crashed)" if row["crashed"] else "")
         label = "SFT (start)" if name == SFT else name
-        delta = _cell(row["diff"]["average"], signed=True) if row["paired_seeds"] else "–"
+        delta = format_ci(row["diff"]["average"], signed=True) if row["paired_seeds"] else "–"
         extra = "– | – | –" if name == SFT else (
             f"{row['env_steps']:,.0f} | {row['wall_clock_s'] / 60:.1f} | {row['samples_per_s']:,.0f}"
             if row["finished"] else "– | – | –")
-        lines.append(f"| {label} | {runs} | " + " | ".join(_cell(row["success"][c]) for c in columns)
+        lines.append(f"| {label} | {runs} | " + " | ".join(format_ci(row["success"][c]) for c in columns)
                      + f" | {delta} | {extra} |")
     others = [n for n in rows if n not in (SFT, ref) and rows[n]["paired_seeds"]]
     if others:
         lines += ["", f"Paired differences to `{ref}` per task (95 % t-interval over seeds):", "",
                   "| algorithm | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
-        lines += [f"| {n} | " + " | ".join(_cell(rows[n]["diff"][c], signed=True) for c in columns) + " |"
+        lines += [f"| {n} | " + " | ".join(format_ci(rows[n]["diff"][c], signed=True) for c in columns) + " |"
                   for n in others]
     missing = [(n, status.get(n, {})) for row in rows.values() for n in row["crashed"]]
     if missing:
@@ -548,12 +549,12 @@ def write_suites_report(cmd: CompareCommand, out: Path, reference: str) -> dict:
              f"suites that apply. Δ OOD: paired difference to `{reference}`.", "",
              "| algorithm | seeds | " + " | ".join(columns) + f" | Δ OOD vs {reference} |", "|---" * (len(columns) + 3) + "|"]
     for row, per_seed in table.items():
-        cells = [_cell(mean_ci([r[c] for r in per_seed.values() if r[c] is not None], 0.0, 1.0)) for c in columns]
+        cells = [format_ci(mean_ci([r[c] for r in per_seed.values() if r[c] is not None], 0.0, 1.0)) for c in columns]
         ref = table.get(reference, {})
         paired = [per_seed[s]["ood_average"] - ref[s]["ood_average"] for s in per_seed
                   if s in ref and row != reference and per_seed[s]["ood_average"] is not None
                   and ref[s]["ood_average"] is not None]
-        delta = _cell(mean_ci(paired, -1.0, 1.0), signed=True) if paired else "–"
+        delta = format_ci(mean_ci(paired, -1.0, 1.0), signed=True) if paired else "–"
         lines.append(f"| {'SFT (start)' if row == SFT else row} | {len(per_seed)} | " + " | ".join(cells) + f" | {delta} |")
     write_atomic(out / "suites.md", "\n".join(lines) + "\n")
     return table

@@ -25,8 +25,8 @@ class Variant:
 
 PAPER_ALGO: dict[str, Any] = {
     "noise_level": 0.2, "beta": 1.0, "beta_dpo": 1.0, "max_drift": 0.5, "kl_beta": 1e-4, "target": "next",
-    "form": "rank", "sde_steps": "all", "record_steps": "one", "labels": "episode", "label_balance": "none", "episode_weighting": False,
-    "drift_limit": None, "ema_base": 0.1, "ema_target": 0.995, "eval_ema": True,
+    "form": "rank", "sde_steps": "all", "record_steps": "one", "labels": "episode", "label_balance": "none",
+    "episode_weighting": False, "drift_limit": None, "ema_base": 0.1, "ema_target": 0.995, "eval_ema": True,
     "adam_betas": (0.9, 0.95), "adam_eps": 1e-5, "weight_decay": 0.01, "grad_clip": 1.0,
 }
 """The paper's π-StepNFT settings (docs/algorithm.md §9), the ``algo`` section of
