@@ -25,6 +25,7 @@ from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.devices import check_device_name
 from stepnft.envs import DEFAULT_TASKS, SIMULATORS
 from stepnft.envs.perturbations import FAMILY, expand
+from stepnft.names import split_names
 from stepnft.policies.flow import FlowPolicyConfig
 
 
@@ -65,8 +66,8 @@ class EnvConfig:
         if isinstance(self.tasks, str):
             self.tasks = [self.tasks]
         self.tasks = [t.strip() for item in self.tasks for t in item.split(",") if t.strip()]
-        self.cameras = _names(self.cameras)
-        self.randomize = list(expand(_names(self.randomize)))
+        self.cameras = split_names(self.cameras)
+        self.randomize = list(expand(split_names(self.randomize)))
         if self.cameras and not 8 <= self.image_size <= 480:
             raise ValueError(f"env.image_size must be in 8..480, got {self.image_size}")
         if self.state_obs not in ("full", "proprio"):
@@ -280,12 +281,6 @@ class EvalCommand:
         if not check_device_name(self.device):
             raise ValueError(f"device={self.device!r} is invalid: use cpu, cuda or cuda:N")
 
-
-
-def _names(value: str | list[str]) -> list[str]:
-    """A list of names from a list or a comma-separated string (flags and YAML alike)."""
-    items = [value] if isinstance(value, str) else value
-    return [n.strip() for item in items for n in item.split(",") if n.strip()]
 
 
 def to_dict(cfg) -> dict:
