@@ -26,7 +26,8 @@ from stepnft.policies.base import Policy, non_finite
 from stepnft.runs import write_atomic
 
 KEEP = 2  # checkpoints kept on disk
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+"""3: training progress in one record, collectors that draw episode plans (runs of format 2 cannot resume)."""
 
 
 def flatten_state(tree: Any) -> tuple[Any, dict[str, torch.Tensor]]:

@@ -20,6 +20,7 @@ import torch
 from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 from stepnft.rollout.collector import Collector
+from stepnft.rollout.plan import EpisodePlan
 
 
 def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[float, float]:
@@ -37,46 +38,27 @@ def evaluate_policy(policy: Policy, venv, episodes: int, seed: int = 0, progress
                     label: Callable[[int], str] | None = None) -> dict:
     """Success per task over ``episodes`` episodes each, ODE sampling.
 
-    ``venv`` is a chunk vector env with the same number of sub-envs per task, or a collector
-    that plays waves on one (e.g. ``RayCollector``: the same episodes, on its workers); each
-    wave plays that many new episodes of every task. ``policy.processor`` must be bound to
-    ``venv.instruction_variants`` (or ``venv.instructions``). Returns ``{"tasks": {task: {...}},
-    "average": rate, "episodes": per task, "env_steps": total}``; with ``label`` (the initial
-    state seed -> a group name, e.g. a suite's perturbation) also ``"breakdown": {group: {...}}``
-    over every task's episodes.
+    ``venv`` is a chunk vector env, or a collector that plays on one (e.g. ``RayCollector``:
+    the same episodes, on its workers). Episode ``e`` of every task starts from initial state
+    ``seed + e`` (``EpisodePlan.fixed``). ``policy.processor`` must be bound to
+    ``venv.instruction_variants`` (or ``venv.instructions``). ``progress(done, total)`` is
+    called as episodes end. Returns ``{"tasks": {task: {...}}, "average": rate, "episodes": per
+    task, "env_steps": total}``; with ``label`` (the initial state seed -> a group name, e.g. a
+    suite's perturbation) also ``"breakdown": {group: {...}}`` over every task's episodes.
     """
-    policy.eval()
     collector = venv if isinstance(venv, Collector) else Collector(venv)
-    venv = collector.venv
-    task_ids = np.asarray(venv.task_ids)
-    n_tasks = len(venv.tasks)
-    per_task = len(task_ids) // n_tasks
-    slot = np.zeros_like(task_ids)
-    for k in range(n_tasks):
-        slot[task_ids == k] = np.arange(per_task)
-    successes = np.zeros(n_tasks, dtype=np.int64)
-    counts = np.zeros(n_tasks, dtype=np.int64)
-    groups: dict[str, list[int]] = {}
-    env_steps = 0
-    waves = math.ceil(episodes / per_task)
-    for w in range(waves):
-        episode = w * per_task + slot
-        seeds = [int(seed + e) for e in episode]
-        wave = collector.play_wave(policy, 0.0, episode_generators(seeds), seeds=seeds)
-        valid = episode < episodes
-        np.add.at(successes, task_ids[valid], wave.episode_success.numpy()[valid])
-        np.add.at(counts, task_ids[valid], 1)
-        if label is not None:
-            for s, ok in zip(np.asarray(seeds)[valid], wave.episode_success.numpy()[valid]):
-                tally = groups.setdefault(label(int(s)), [0, 0])
-                tally[0], tally[1] = tally[0] + int(ok), tally[1] + 1
-        env_steps += wave.env_steps
-        if progress is not None:
-            progress(w + 1, waves)
-    tasks = {name: _rate(successes[k], counts[k]) for k, name in enumerate(venv.tasks)}
-    result = {"tasks": tasks, "average": float(np.mean([v["success"] for v in tasks.values()])),
-              "episodes": episodes, "env_steps": env_steps}
+    tasks = list(collector.venv.tasks)
+    plan = EpisodePlan.fixed(len(tasks), episodes, seed)
+    batch = collector.play(policy, plan, 0.0, progress=progress)
+    success = batch.episode_success.numpy()
+    rates = {name: _rate(success[plan.task == k].sum(), episodes) for k, name in enumerate(tasks)}
+    result = {"tasks": rates, "average": float(np.mean([r["success"] for r in rates.values()])),
+              "episodes": episodes, "env_steps": batch.env_steps}
     if label is not None:
+        groups: dict[str, list[int]] = {}
+        for s, ok in zip(plan.seed, success):
+            tally = groups.setdefault(label(int(s)), [0, 0])
+            tally[0], tally[1] = tally[0] + int(ok), tally[1] + 1
         result["breakdown"] = {g: _rate(k, n) for g, (k, n) in sorted(groups.items())}
     return result
 

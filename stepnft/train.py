@@ -12,10 +12,11 @@ and ``summary.json`` (``stepnft.runs``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Callable
 
@@ -46,121 +47,213 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
     with ExitStack() as stack:
         stack.callback(distributed.close)
         run_dir, sim, tasks, collector = _start_run(cfg, stack, "train", resume)
-        evaluate = _evaluator(collector)
-        if resume:
-            ckpt = load_checkpoint(run_dir)
-            policy, state = ckpt["policy"].to(cfg.device), ckpt["state"]
-        else:
-            policy = _init_policy(cfg) if cfg.init else None
-            mark_run(run_dir, "train")
-            save_config(cfg, run_dir / "config.yaml")
-            policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
-                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env, device=cfg.device)
-            policy.save_pretrained(run_dir / "sft_policy")
-        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
-        algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
-        allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
-        if resume:
-            algo.load_state_dict(state["algorithm"])
-            algo.generator.set_state(state["algorithm_generator"])
-            collector.load_state_dict(state["collector"])
-            allocator.load_state_dict(state["allocator"])
-            torch.set_rng_state(state["torch_rng"])
-            start, env_steps, before, best = state["iteration"], state["env_steps"], state["before"], state["best"]
-            log(f"resuming {run_dir} from iteration {start} ({env_steps} env steps)")
-        else:
-            start, env_steps = 0, 0
-            before = evaluate(policy, cfg.eval.episodes, cfg.eval.seed)
-            log("before RL:\n" + format_table(None, before))
-            allocator.success[:] = [before["tasks"][t]["success"] for t in tasks]
-            validation = evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed) if cfg.eval.every else None
-            best = {"iteration": 0, "validation": validation["average"] if validation else None}
-            policy.save_pretrained(run_dir / "best_policy")
+        start = TrainingRun.resume if resume else TrainingRun.begin
+        run = start(cfg, run_dir, sim, tasks, collector, log)
         if distributed.world_size() > 1:
-            distributed.broadcast((policy, algo.state_dict(), algo.generator.get_state()))
-        logger = MetricLogger(run_dir, resume_iteration=start if resume else None)
+            distributed.broadcast((run.policy, run.algo.state_dict(), run.algo.generator.get_state()))
+        logger = MetricLogger(run_dir, resume_iteration=run.progress.iteration if resume else None)
         stack.callback(logger.close)
         if not resume:
-            logger.log({"iteration": 0, "env_steps": 0, **_eval_record(before, "test"),
-                        **(_eval_record(validation, "validation") if validation else {})})
-
-        t_start, iteration = time.perf_counter(), start
-        out_of_budget = lambda: cfg.env_step_budget is not None and env_steps >= cfg.env_step_budget  # noqa: E731
-        bar = stack.enter_context(tqdm(range(start, cfg.iterations), desc=cfg.algo.name, initial=start,
-                                       total=cfg.iterations))
-        for it in bar:
-            if out_of_budget():  # a resumed run that had already spent its budget
-                break
-            t0 = time.perf_counter()
-            task_episodes = allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
-            batch = collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
-            env_steps += batch.env_steps
-            distributed.broadcast((batch, it, torch.get_rng_state()))
-            t1 = time.perf_counter()
-            metrics = algo.update(batch)
-            if non_finite(policy.state_dict()):  # the update guard should make this impossible
-                raise RunDiverged(f"the policy's weights became non-finite in iteration {it + 1} (algo.lr="
-                                  f"{cfg.algo.lr:g} too large?); the last checkpoint is intact")
-            metrics |= algo.end_iteration(it)
-            allocator.update(batch)
-            t2 = time.perf_counter()
-            iteration = it + 1
-            record = {"iteration": iteration, "env_steps": env_steps, **_rollout_record(batch, tasks),
-                      "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
-                      "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **collector.pop_metrics()}
-            last = iteration == cfg.iterations or out_of_budget()
-            if cfg.eval.every and iteration % cfg.eval.every == 0 and not last:
-                current = algo.eval_policy()
-                validation = evaluate(current, cfg.eval.during_episodes, cfg.eval.validation_seed)
-                record |= _eval_record(validation, "validation")
-                if validation["average"] > best["validation"]:
-                    best = {"iteration": iteration, "validation": validation["average"]}
-                    current.save_pretrained(run_dir / "best_policy")
+            logger.log({"iteration": 0, "env_steps": 0, **_eval_record(run.progress.before, "test"),
+                        **_eval_record(run.progress.validation, "validation")})
+        bar = stack.enter_context(tqdm(total=cfg.iterations, initial=run.progress.iteration, desc=cfg.algo.name))
+        while run.progress.iteration < cfg.iterations and not run.out_of_budget():
+            record = run.iterate()
+            last = run.progress.iteration == cfg.iterations or run.out_of_budget()
+            if cfg.eval.every and (run.progress.iteration % cfg.eval.every == 0 or last):
+                record |= run.validate()
             logger.log(record)
+            bar.update(1)
             bar.set_postfix(rollout=f"{record['charts/rollout_success_rate']:.2f}",
-                            best=f"{best['validation'] or 0:.2f}@{best['iteration']}", refresh=False)
-            if iteration % cfg.checkpoint_every == 0 or last:
-                save_checkpoint(run_dir, iteration, policy, {
-                    "env_steps": env_steps, "before": before, "best": best, "algorithm": algo.state_dict(),
-                    "algorithm_generator": algo.generator.get_state(), "collector": collector.state_dict(),
-                    "allocator": allocator.state_dict(), "torch_rng": torch.get_rng_state()})
-            if last:
-                break
+                            best=f"{run.progress.best['validation'] or 0:.2f}@{run.progress.best['iteration']}",
+                            refresh=False)
+            if run.progress.iteration % cfg.checkpoint_every == 0 or last:
+                run.save_checkpoint()
         bar.close()
         distributed.broadcast(None)  # the other processes are done
+        return _finish(run, logger, sim, log)
 
-        final = algo.eval_policy()
-        after = evaluate(final, cfg.eval.episodes, cfg.eval.seed)
-        final.save_pretrained(run_dir / "policy")
-        if best["iteration"] == iteration:  # the last validation was the best: same weights
-            best_after = after
-            shutil.copytree(run_dir / "policy", run_dir / "best_policy", dirs_exist_ok=True)
-        else:
-            best_policy = load_policy(run_dir / "best_policy").to(cfg.device)
-            best_policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
-            best_after = evaluate(best_policy, cfg.eval.episodes, cfg.eval.seed)
-        logger.log({"iteration": iteration, "env_steps": env_steps, "final": True, **_eval_record(after, "test")})
-        if cfg.eval.videos:
-            _film(final, cfg, sim, tasks, run_dir, logger, env_steps, log)
-        plot_learning_curve(run_dir)
-        summary = {
-            "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t], "best": best_after["tasks"][t]}
-                      for t in tasks},
-            "average": {"before": before["average"], "after": after["average"], "best": best_after["average"]},
-            "below_start": tasks_below(before, after), "best_below_start": tasks_below(before, best_after),
-            "best_iteration": best["iteration"], "best_validation": best["validation"],
-            "eval_episodes_per_task": cfg.eval.episodes, "env_steps": env_steps, "algorithm": cfg.algo.name,
-            "wall_clock_s_this_session": time.perf_counter() - t_start, "seed": cfg.seed, "iterations": iteration,
-        }
-        write_atomic(run_dir / "summary.json", json.dumps(summary, indent=2))
-        log("before -> after (policy/):\n" + format_table(before, after))
-        log(f"best_policy/ (iteration {best['iteration']}, validation {best['validation']}): "
-            f"test average {best_after['average']:.3f}")
-        for name, below in (("policy/", summary["below_start"]), ("best_policy/", summary["best_below_start"])):
-            if below:
-                log(f"warning: {name} ends below its SFT start beyond the 95 % interval of the difference on: "
-                    f"{', '.join(below)}")
-        return summary
+
+class TrainingRun:
+    """The parts of a training run (policy, algorithm, collector, task allocator) and its
+    progress; :meth:`state_dict` names everything a checkpoint holds besides the policy."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: Path, policy: Policy, collector: Collector, tasks: list[str]):
+        self.cfg, self.run_dir, self.policy, self.collector, self.tasks = cfg, run_dir, policy, collector, tasks
+        policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
+        self.algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
+        self.allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
+        self.progress = Progress()
+
+    # --- start ------------------------------------------------------------------------------
+    @classmethod
+    def begin(cls, cfg: TrainConfig, run_dir: Path, sim, tasks: list[str], collector: Collector, log) -> "TrainingRun":
+        """A new run: the ``--init`` policy or few-shot SFT, evaluated on the test states (and
+        the validation states, as the first ``best_policy/``)."""
+        clock = Progress()  # SFT comes before the run's parts exist
+        policy = _init_policy(cfg) if cfg.init else None
+        mark_run(run_dir, "train")
+        save_config(cfg, run_dir / "config.yaml")
+        with clock.timed("sft"):
+            policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
+                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env,
+                                              device=cfg.device)
+        policy.save_pretrained(run_dir / "sft_policy")
+        run = cls(cfg, run_dir, policy, collector, tasks)
+        run.progress.time_s = clock.time_s
+        with run.progress.timed("test_eval"):
+            run.progress.before = run.evaluate(policy, cfg.eval.episodes, cfg.eval.seed)
+        log("before RL:\n" + format_table(None, run.progress.before))
+        run.allocator.success[:] = [run.progress.before["tasks"][t]["success"] for t in tasks]
+        if cfg.eval.every:
+            with run.progress.timed("validation"):
+                run.progress.validation = run.evaluate(policy, cfg.eval.during_episodes, cfg.eval.validation_seed)
+            run.progress.best["validation"] = run.progress.validation["average"]
+        policy.save_pretrained(run_dir / "best_policy")
+        return run
+
+    @classmethod
+    def resume(cls, cfg: TrainConfig, run_dir: Path, sim, tasks: list[str], collector: Collector,
+               log) -> "TrainingRun":
+        """The run at its last checkpoint, exactly as it was."""
+        ckpt = load_checkpoint(run_dir)
+        run = cls(cfg, run_dir, ckpt["policy"].to(cfg.device), collector, tasks)
+        run.load_state_dict(ckpt["state"])
+        log(f"resuming {run_dir} from iteration {run.progress.iteration} ({run.progress.env_steps} env steps)")
+        return run
+
+    # --- checkpoints ------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"progress": dataclasses.asdict(self.progress), "algorithm": self.algo.state_dict(),
+                "algorithm_generator": self.algo.generator.get_state(), "collector": self.collector.state_dict(),
+                "allocator": self.allocator.state_dict(), "torch_rng": torch.get_rng_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.progress = Progress(**state["progress"])
+        self.algo.load_state_dict(state["algorithm"])
+        self.algo.generator.set_state(state["algorithm_generator"])
+        self.collector.load_state_dict(state["collector"])
+        self.allocator.load_state_dict(state["allocator"])
+        torch.set_rng_state(state["torch_rng"])
+
+    def save_checkpoint(self) -> None:
+        with self.progress.timed("checkpoints"):
+            save_checkpoint(self.run_dir, self.progress.iteration, self.policy, self.state_dict())
+
+    # --- the loop -----------------------------------------------------------------------------
+    def out_of_budget(self) -> bool:
+        return self.cfg.env_step_budget is not None and self.progress.env_steps >= self.cfg.env_step_budget
+
+    def iterate(self) -> dict:
+        """One iteration: collect -> update -> end of iteration; returns its metrics."""
+        cfg, algo, progress = self.cfg, self.algo, self.progress
+        t0 = time.perf_counter()
+        with progress.timed("rollouts"):
+            task_episodes = self.allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
+            batch = self.collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
+        distributed.broadcast((batch, progress.iteration, torch.get_rng_state()))
+        t1 = time.perf_counter()
+        with progress.timed("updates"):
+            metrics = algo.update(batch)
+            if non_finite(self.policy.state_dict()):  # the update guard should make this impossible
+                raise RunDiverged(f"the policy's weights became non-finite in iteration {progress.iteration + 1} "
+                                  f"(algo.lr={cfg.algo.lr:g} too large?); the last checkpoint is intact")
+            metrics |= algo.end_iteration(progress.iteration)
+            self.allocator.update(batch)
+        t2 = time.perf_counter()
+        progress.iteration += 1
+        progress.env_steps += batch.env_steps
+        return {"iteration": progress.iteration, "env_steps": progress.env_steps, **_rollout_record(batch, self.tasks),
+                "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
+                "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **self.collector.pop_metrics()}
+
+    def validate(self) -> dict:
+        """The evaluated policy on the validation states; kept as ``best_policy/`` if best so far."""
+        current = self.algo.eval_policy()
+        with self.progress.timed("validation"):
+            result = self.evaluate(current, self.cfg.eval.during_episodes, self.cfg.eval.validation_seed)
+        if result["average"] > self.progress.best["validation"]:
+            self.progress.best = {"iteration": self.progress.iteration, "validation": result["average"]}
+            current.save_pretrained(self.run_dir / "best_policy")
+        return _eval_record(result, "validation")
+
+    def evaluate(self, policy: Policy, episodes: int, seed: int) -> dict:
+        """``evaluate_policy`` on the run's envs, with a progress bar."""
+        with tqdm(total=len(self.tasks) * episodes, desc=f"eval {episodes}/task", leave=False) as bar:
+            def progress(done, total):
+                bar.total, bar.n = total, done
+                bar.refresh()
+            return evaluate_policy(policy, self.collector, episodes, seed, progress=progress)
+
+
+@dataclasses.dataclass
+class Progress:
+    """How far a training run got (checkpointed): iterations, env steps, the start's test and
+    validation results, the best validation so far, and wall-clock seconds per phase."""
+
+    iteration: int = 0
+    env_steps: int = 0
+    before: dict | None = None
+    validation: dict | None = None
+    best: dict = dataclasses.field(default_factory=lambda: {"iteration": 0, "validation": None})
+    time_s: dict = dataclasses.field(default_factory=dict)
+
+    @contextmanager
+    def timed(self, phase: str):
+        """Add the block's wall-clock to ``time_s[phase]``."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.time_s[phase] = self.time_s.get(phase, 0.0) + time.perf_counter() - start
+
+
+def _finish(run: TrainingRun, logger: MetricLogger, sim, log) -> dict:
+    """Test evaluation of ``policy/`` (and of ``best_policy/`` unless it is the start or the
+    final policy), videos, curves and ``summary.json``."""
+    cfg, run_dir, tasks, progress = run.cfg, run.run_dir, run.tasks, run.progress
+    final = run.algo.eval_policy()
+    with progress.timed("test_eval"):
+        after = run.evaluate(final, cfg.eval.episodes, cfg.eval.seed)
+    final.save_pretrained(run_dir / "policy")
+    best = progress.best
+    if best["iteration"] == progress.iteration:  # the last validation was the best: the same weights
+        best_after = after
+        shutil.copytree(run_dir / "policy", run_dir / "best_policy", dirs_exist_ok=True)
+    elif best["iteration"] == 0:  # nothing beat the start on validation: best_policy/ is the start
+        best_after = progress.before
+    else:
+        best_policy = load_policy(run_dir / "best_policy").to(cfg.device)
+        best_policy.processor.bind_instructions(run.collector.venv.instruction_variants, run_dir / "lang_cache")
+        with progress.timed("test_eval"):
+            best_after = run.evaluate(best_policy, cfg.eval.episodes, cfg.eval.seed)
+    logger.log({"iteration": progress.iteration, "env_steps": progress.env_steps, "final": True,
+                **_eval_record(after, "test")})
+    if cfg.eval.videos:
+        with progress.timed("videos"):
+            _film(final, cfg, sim, tasks, run_dir, logger, progress.env_steps, log)
+    plot_learning_curve(run_dir)
+    before = progress.before
+    summary = {
+        "tasks": {t: {"before": before["tasks"][t], "after": after["tasks"][t], "best": best_after["tasks"][t]}
+                  for t in tasks},
+        "average": {"before": before["average"], "after": after["average"], "best": best_after["average"]},
+        "below_start": tasks_below(before, after), "best_below_start": tasks_below(before, best_after),
+        "best_iteration": best["iteration"], "best_validation": best["validation"],
+        "eval_episodes_per_task": cfg.eval.episodes, "env_steps": progress.env_steps, "algorithm": cfg.algo.name,
+        "time_s": progress.time_s, "wall_clock_s": sum(progress.time_s.values()), "seed": cfg.seed,
+        "iterations": progress.iteration,
+    }
+    write_atomic(run_dir / "summary.json", json.dumps(summary, indent=2))
+    log("before -> after (policy/):\n" + format_table(before, after))
+    log(f"best_policy/ (iteration {best['iteration']}, validation {best['validation']}): "
+        f"test average {best_after['average']:.3f}")
+    log("time: " + ", ".join(f"{phase} {seconds:.0f} s" for phase, seconds in progress.time_s.items()))
+    for name, below in (("policy/", summary["below_start"]), ("best_policy/", summary["best_below_start"])):
+        if below:
+            log(f"warning: {name} ends below its SFT start beyond the 95 % interval of the difference on: "
+                f"{', '.join(below)}")
+    return summary
 
 
 def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
@@ -179,7 +272,7 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
             log(f"SFT policy saved to {run_dir / 'policy'} (eval.episodes 0: not evaluated)")
             return {}
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
-        result = _evaluator(collector)(policy, cfg.eval.episodes, cfg.eval.seed)
+        result = evaluate_policy(policy, collector, cfg.eval.episodes, cfg.eval.seed)
         write_atomic(run_dir / "summary.json", json.dumps({"sft": result}, indent=2))
         log("SFT policy:\n" + format_table(None, result))
         return result
@@ -265,17 +358,6 @@ def _init_policy(cfg: TrainConfig) -> Policy:
     return policy
 
 
-def _evaluator(collector: Collector):
-    """``evaluate(policy, episodes, seed)`` on the run's envs, with a progress bar."""
-    def evaluate(policy: Policy, episodes: int, seed: int) -> dict:
-        with tqdm(total=1, desc=f"eval {episodes}/task", leave=False) as bar:
-            def progress(done, total):
-                bar.total, bar.n = total, done
-                bar.refresh()
-            return evaluate_policy(policy, collector, episodes, seed, progress=progress)
-    return evaluate
-
-
 def _film(policy: Policy, cfg: TrainConfig, sim, tasks: list[str], run_dir: Path, logger: MetricLogger,
           env_steps: int, log) -> None:
     """``eval.videos`` ODE episodes per task from the test states into ``RUN/videos`` and
@@ -290,9 +372,11 @@ def _film(policy: Policy, cfg: TrainConfig, sim, tasks: list[str], run_dir: Path
         log(f"no videos: {err}")
 
 
-def _eval_record(result: dict, states: str) -> dict:
+def _eval_record(result: dict | None, states: str) -> dict:
     """Evaluation metrics: ``charts/success_rate`` + ``eval/<task>`` on test states,
     ``charts/validation_success_rate`` + ``validation/<task>`` on validation states."""
+    if result is None:
+        return {}
     if states == "test":
         return {"charts/success_rate": result["average"], **{f"eval/{t}": r["success"] for t, r in result["tasks"].items()}}
     return {"charts/validation_success_rate": result["average"],

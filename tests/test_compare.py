@@ -5,6 +5,7 @@ without rerunning anything finished, the report."""
 import csv
 import dataclasses
 import json
+import os
 import shutil
 
 import pytest
@@ -19,9 +20,22 @@ from stepnft.runs import read_metrics
 pytestmark = pytest.mark.slow
 
 
+CRASH = """
+import os
+if os.environ.get("STEPNFT_TEST_CRASH_GRPO"):
+    import stepnft.algos.grpo as grpo
+
+    def crash(self, batch):
+        raise ValueError("injected crash in GRPO's update")
+
+    grpo.GRPO.update = crash
+"""
+"""A ``sitecustomize`` for compare's children: GRPO's runs crash in their first update (an
+error of the run, which compare reports while the others go on)."""
+
+
 def bandit_base(path, envs=126):
-    """A tiny bandit run config. 126 envs do not split into GRPO's groups of 4: its run crashes
-    in its first rollout (a genuine error of the run, reported by compare)."""
+    """A tiny bandit run config."""
     cfg = bandit_config(run_dir="unused", iterations=3, episodes_per_iteration=envs, checkpoint_every=1)
     cfg = dataclasses.replace(
         cfg, env=dataclasses.replace(cfg.env, envs_per_task=envs), demos=dataclasses.replace(cfg.demos, episodes=500),
@@ -41,6 +55,16 @@ def snapshot(folder):
             if p.is_file()}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def crashing_grpo(tmp_path_factory):
+    site = tmp_path_factory.mktemp("site")
+    (site / "sitecustomize.py").write_text(CRASH)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("STEPNFT_TEST_CRASH_GRPO", "1")
+        patch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+        yield
+
+
 @pytest.fixture(scope="module")
 def first(tmp_path_factory):
     root = tmp_path_factory.mktemp("compare")
@@ -55,7 +79,7 @@ def test_crashed_run_is_reported_and_the_others_finish(first):
     assert code == 1  # not every run finished
     status = json.loads((out / "status.json").read_text())
     assert status["grpo_seed0"]["state"] == "crashed" and status["grpo_seed0"]["rc"] == 2
-    assert "do not split into groups of 4" in (out / "logs" / "grpo_seed0.log").read_text()
+    assert "injected crash in GRPO's update" in (out / "logs" / "grpo_seed0.log").read_text()
     for name in ("sft_seed0", "stepnft_seed0", "ppo_seed0"):
         assert status[name]["state"] == "finished", name
     report = (out / "comparison.md").read_text()

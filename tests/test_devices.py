@@ -8,7 +8,8 @@ import dataclasses
 import pytest
 import torch
 
-from stepnft.algos.base import RolloutSpec, make_algorithm
+from stepnft.algos.base import make_algorithm
+from stepnft.rollout.plan import RolloutSpec
 from stepnft.algos.ppo import PPOConfig
 from stepnft.algos.sft import SFTConfig, sft_from_demos
 from stepnft.algos.stepnft import StepNFTConfig

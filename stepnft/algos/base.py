@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.policies.base import Policy
+from stepnft.rollout.plan import RolloutSpec  # noqa: F401 - what an algorithm tells the collector
 
 ALGORITHMS: dict[str, str] = {
     "stepnft": "stepnft.algos.stepnft:StepNFT",
@@ -33,20 +34,6 @@ ALGORITHMS: dict[str, str] = {
     "grpo": "stepnft.algos.grpo:GRPO",
 }
 """Registered algorithms by ``algo.name`` (imported on first use). A new algorithm adds a line."""
-
-
-@dataclass
-class RolloutSpec:
-    """How the collector samples and what it records for the update."""
-
-    noise_level: float
-    """Flow-SDE noise level ``a`` of the rollouts (0: ODE)."""
-    stochastic_steps: Literal["all", "one"] = "all"
-    """Every denoising step stochastic, or only the recorded one (the others ODE)."""
-    record_steps: Literal["one", "all"] = "one"
-    """Store one random denoising step per policy call, or all K of them."""
-    group_size: int = 1
-    """Episodes per group started from the same task and initial state (GRPO); 1: no groups."""
 
 
 @dataclass

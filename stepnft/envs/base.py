@@ -17,13 +17,20 @@ Chunk env contract (one task):
     ``reset(seed=s)`` gives an initial state that depends only on (task, s); an unseeded reset
     continues the env's own stream. Stepping an ended episode is a no-op: same observation,
     reward 0, the same flags, ``steps`` 0, so a batch can keep stepping its finished members.
-    ``reset(options={"idle": True})`` sits a wave out: the env does not simulate, leaves its RNG
-    alone and is ended at once (truncated, ``episode_steps`` 0), so a wave can use a subset of
-    a batch (``stepnft.rollout.collector`` allocates episodes to tasks this way).
+    ``reset(options={"idle": True})`` sits a batch step out: the env does not simulate, leaves
+    its RNG alone and is ended at once (truncated, ``episode_steps`` 0).
+
+Vector envs (:class:`ChunkVecEnv` in this process, :class:`ShardedChunkVecEnv` in worker
+processes) lay sub-envs out task by task and split them into ``LANES`` *lanes* (sub-env ``i``'s
+lane is its place among its task's sub-envs, modulo ``LANES``). Besides gymnasium's batch
+``reset``/``step`` they take ``send_ops``/``receive_ops``: reset or step any subset without
+waiting for the others, so the collector can compute one lane's actions while the workers step
+the other. The worker processes each own part of every lane (and of every task in it).
 """
 
 from __future__ import annotations
 
+import collections
 import multiprocessing
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -36,6 +43,33 @@ from gymnasium.vector import AutoresetMode
 
 from stepnft.envs.perturbations import Perturbations
 from stepnft.envs.sharded import ShardedVectorEnv
+
+
+LANES = 2
+"""Lanes of a vector env (see the module doc): two, so that one is stepped while the actions of
+the other are computed. Fixed, not tied to the worker count, so that the same seed gives the same
+episodes with any ``num_workers``."""
+
+
+def lane_ids(task_ids: np.ndarray) -> np.ndarray:
+    """``[N]`` the lane of every sub-env: its place among the sub-envs of its task, mod ``LANES``."""
+    task_ids = np.asarray(task_ids)
+    place = np.zeros(len(task_ids), dtype=np.int64)
+    for k in np.unique(task_ids):
+        mine = np.flatnonzero(task_ids == k)
+        place[mine] = np.arange(len(mine))
+    return place % LANES
+
+
+def lane_workers(task_ids: np.ndarray, num_workers: int) -> list[int]:
+    """The worker of every sub-env: each lane's sub-envs dealt out in turn, so every worker
+    holds the same share of every lane and of every task in it."""
+    lanes = lane_ids(task_ids)
+    owner = [0] * len(lanes)
+    order = [i for lane in range(LANES) for i in np.flatnonzero(lanes == lane)]
+    for n, i in enumerate(order):
+        owner[int(i)] = n % num_workers
+    return owner
 
 
 class RenderingError(RuntimeError):
@@ -165,8 +199,8 @@ class _TaskLayout:
     """The multi-task layout every chunk vector env shares; sets ``tasks``, ``instructions``
     (per task), ``instruction_variants`` (per task, what the ``instruction`` observation indexes;
     bind a policy's processor to these), ``task_ids`` [N] and ``task_names`` [N], then builds the
-    gymnasium class it is mixed into with autoreset disabled (the collector resets whole waves
-    itself)."""
+    gymnasium class it is mixed into with autoreset disabled (the collector resets sub-envs
+    itself), and ``lanes`` [N] (:func:`lane_ids`)."""
 
     def __init__(self, env_fns: list[Callable[[], gym.Env]], *, tasks: list[str], instructions: list[str],
                  task_ids: np.ndarray, instruction_variants: list[list[str]] | None = None, **vector_kwargs: Any):
@@ -175,6 +209,7 @@ class _TaskLayout:
         self.instruction_variants = instruction_variants or [[i] for i in self.instructions]
         self.task_ids = np.asarray(task_ids, dtype=np.int64)
         self.task_names = [self.tasks[i] for i in self.task_ids]
+        self.lanes = lane_ids(self.task_ids)
         super().__init__(env_fns, **vector_kwargs)
 
     def reset(self, *, seed=None, options=None):
@@ -209,17 +244,31 @@ class ChunkVecEnv(_TaskLayout, gym.vector.SyncVectorEnv):
 
     def __init__(self, env_fns, **layout):
         super().__init__(env_fns, autoreset_mode=AutoresetMode.DISABLED, **layout)
+        self._replies: collections.deque[list] = collections.deque()
 
     def step(self, actions: np.ndarray):
         # SyncVectorEnv refuses to step a finished sub-env when autoreset is disabled; chunk
-        # envs treat that step as a no-op, so a wave can step the whole batch.
+        # envs treat that step as a no-op, so the whole batch can be stepped.
         self._autoreset_envs[:] = False
         return super().step(actions)
+
+    def send_ops(self, ops: Sequence[tuple[int, str, Any]]) -> None:
+        """``(i, "reset", seed)`` / ``(i, "step", chunk)`` on sub-env ``i``: run here, now
+        (:meth:`ShardedChunkVecEnv.send_ops` runs them in the workers without waiting)."""
+        self._replies.append([self.envs[i].reset(seed=arg) if op == "reset" else self.envs[i].step(arg)
+                              for i, op, arg in ops])
+
+    def receive_ops(self) -> list:
+        """The results of the oldest :meth:`send_ops` not yet received, in its op order."""
+        return self._replies.popleft()
 
 
 class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
     """:class:`ChunkVecEnv` with the sub-envs dealt out to ``num_workers`` worker processes
-    (MuJoCo is CPU-bound: one worker per core). Same layout, info keys and results."""
+    (MuJoCo is CPU-bound: one worker per core), each holding its share of every lane
+    (:func:`lane_workers`). Same layout, info keys and results."""
 
     def __init__(self, env_fns, num_workers: int = 2, context: str | None = None, **layout):
-        super().__init__(env_fns, num_workers=num_workers, context=context, **layout)
+        workers = min(num_workers, len(env_fns))
+        super().__init__(env_fns, num_workers=workers, context=context,
+                         assignment=lane_workers(layout["task_ids"], workers), **layout)

@@ -13,6 +13,13 @@ cost per step (MetaWorld pick-place ~3x drawer-open), so the default ``assignmen
 deals the sub-envs out like cards (worker w owns ``range(w, N, num_workers)``), which gives
 every worker the same mix of tasks; ``"contiguous"`` gives worker w one contiguous block.
 
+Besides gymnasium's batch `reset`/`step`, :meth:`ShardedVectorEnv.send_ops` /
+:meth:`~ShardedVectorEnv.receive_ops` reset or step any subset of the sub-envs without waiting:
+each shard holding one of them gets one message, several requests may be in flight at once
+(each worker answers its messages in order), and the replies come back in request order. A
+caller can so compute the next actions of some sub-envs while the workers step others
+(``stepnft.rollout.collector``'s lanes).
+
 Autoreset is always DISABLED: the sub-envs must answer a step after their episode ended
 themselves (as `MetaWorldChunkEnv` does, with a no-op). Given the same env factories, seeds
 and actions, results are bit-identical to a `gymnasium.vector.SyncVectorEnv` in one process.
@@ -26,6 +33,7 @@ Workers are terminated by `close()`, on garbage collection and at interpreter ex
 
 from __future__ import annotations
 
+import collections
 import multiprocessing
 import os
 import signal
@@ -148,6 +156,10 @@ def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: 
                     for j, (env, action) in enumerate(zip(envs, data, strict=True)):
                         index = indices[j]
                         results.append(env.step(action))
+                elif command == "ops":
+                    for j, op, arg in data:
+                        index = indices[j]
+                        results.append(envs[j].reset(seed=arg) if op == "reset" else envs[j].step(arg))
                 elif command == "call":
                     name, args, kwargs = data
                     for j, env in enumerate(envs):
@@ -232,7 +244,8 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             ``functools.partial``; lambdas work if cloudpickle is installed).
         num_workers: processes (default: the usable CPU cores), at most ``len(env_fns)``.
         assignment: "interleave" (default; worker w owns sub-envs i with i % num_workers == w,
-            which balances a task-by-task layout) or "contiguous" (worker w owns one block).
+            which balances a task-by-task layout), "contiguous" (worker w owns one block), or
+            an explicit sequence giving each sub-env's worker (0..num_workers-1, each used).
             Either way every result is in sub-env order, and identical.
         timeout: seconds any one shard may take to answer a command (or to build its envs).
         context: multiprocessing start method; default "fork" where available.
@@ -251,7 +264,7 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
         timeout: float = 120.0,
         context: str | None = None,
         copy: bool = True,
-        assignment: str = "interleave",
+        assignment: str | Sequence[int] = "interleave",
     ) -> None:
         super().__init__()
         env_fns = list(env_fns)
@@ -262,15 +275,23 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
         self.num_envs = len(env_fns)
         if num_workers is not None and num_workers < 1:
             raise ValueError(f"num_workers must be >= 1, got {num_workers}")
-        self.assignment = assignment
-        self.shards = shard_ranges(self.num_envs, num_workers or _default_workers(), assignment)
+        if isinstance(assignment, str):
+            self.assignment = assignment
+            self.shards: list[Sequence[int]] = shard_ranges(self.num_envs, num_workers or _default_workers(),
+                                                            assignment)
+        else:
+            self.assignment = "explicit"
+            self.shards = _explicit_shards(assignment, self.num_envs, num_workers)
         self.num_workers = len(self.shards)
         self.timeout = float(timeout)
         self.copy = copy
         self.autoreset_mode = AutoresetMode.DISABLED
         self._shard_index = np.empty(self.num_envs, dtype=np.int64)
+        self._position = np.empty(self.num_envs, dtype=np.int64)  # a sub-env's place in its shard
         for w, shard in enumerate(self.shards):
-            self._shard_index[shard.start:shard.stop:shard.step] = w
+            self._shard_index[list(shard)] = w
+            self._position[list(shard)] = np.arange(len(shard))
+        self._in_flight: collections.deque[tuple[list[int], list[tuple[int, int]]]] = collections.deque()
 
         if context is None:
             context = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
@@ -309,7 +330,7 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             if o != obs_space or a != act_space:
                 self.close()
                 raise RuntimeError(
-                    f"sub-env {self.shards[w].start} has spaces ({o}, {a}), sub-env 0 has "
+                    f"sub-env {self.shards[w][0]} has spaces ({o}, {a}), sub-env 0 has "
                     f"({obs_space}, {act_space}); every sub-env must share them")
         self.single_observation_space = obs_space
         self.single_action_space = act_space
@@ -408,6 +429,48 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
         self._request("set_attr", [(name, list(_take(values, s))) for s in self.shards],
                       f"set_attr({name!r})")
 
+    def send_ops(self, ops: Sequence[tuple[int, str, Any]]) -> None:
+        """Start ``ops`` without waiting: ``(i, "reset", seed)`` resets sub-env ``i`` with that
+        seed, ``(i, "step", action)`` steps it (each sub-env at most once). One message goes to
+        each worker owning one of them; :meth:`receive_ops` returns the results."""
+        if not ops:
+            raise ValueError("send_ops needs at least one op")
+        per_shard: dict[int, list[tuple[int, str, Any]]] = {}
+        where = []
+        for i, op, arg in ops:
+            if op not in ("reset", "step"):
+                raise ValueError(f"unknown op {op!r}: use 'reset' or 'step'")
+            w = self.shard_of(i)
+            where.append((w, len(per_shard.setdefault(w, []))))
+            per_shard[w].append((int(self._position[i]), op, arg))
+        workers = sorted(per_shard)
+        try:
+            self._send("ops", [per_shard[w] for w in workers], workers)
+        except BaseException as exc:
+            self._out_of_step(exc)
+            raise
+        self._in_flight.append((workers, where))
+
+    def receive_ops(self) -> list[Any]:
+        """The results of the oldest :meth:`send_ops` not yet received, in its op order:
+        ``(obs, info)`` for a reset, ``(obs, reward, terminated, truncated, info)`` for a step."""
+        if not self._in_flight:
+            raise RuntimeError("receive_ops: no ops in flight")
+        workers, where = self._in_flight.popleft()
+        try:
+            replies = dict(zip(workers, self._gather("ops", workers)))
+        except BaseException as exc:
+            self._out_of_step(exc)
+            raise
+        return [replies[w][k] for w, k in where]
+
+    def _out_of_step(self, exc: BaseException) -> None:
+        """After a failed send or receive: a sub-env's error leaves the env usable, but an
+        interrupt may leave replies on their way, so the pipes are out of step: close."""
+        if isinstance(exc, KeyboardInterrupt):
+            self._in_flight.clear()
+            self.close()
+
     def render(self) -> tuple[Any, ...]:
         return self.call("render")
 
@@ -437,24 +500,31 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             if len(payload) != len(shard):
                 raise RuntimeError(f"a ShardedVectorEnv worker answered {what or command} with "
                                    f"{len(payload)} results for {len(shard)} sub-envs")
-            results[shard.start:shard.stop:shard.step] = payload
+            for i, result in zip(shard, payload):
+                results[i] = result
         return results
 
-    def _send(self, command: str, per_shard: list[Any]) -> None:
+    def _send(self, command: str, per_shard: list[Any], workers: Sequence[int] | None = None) -> None:
+        """One message to each of ``workers`` (default: all), ``per_shard`` in that order."""
         if self.closed or not self._finalizer.alive:
             raise RuntimeError("ShardedVectorEnv is closed")
-        for w, (conn, data) in enumerate(zip(self._workers.conns, per_shard, strict=True)):
+        if self._in_flight and command != "ops":
+            raise RuntimeError(f"{command}: receive the ops in flight first (receive_ops)")
+        workers = range(self.num_workers) if workers is None else workers
+        for w, data in zip(workers, per_shard, strict=True):
+            conn = self._workers.conns[w]
             try:
                 conn.send((command, data))
             except (BrokenPipeError, ConnectionResetError, EOFError, OSError) as exc:
                 self._fail(f"ShardedVectorEnv worker {w} (sub-envs {_span(self.shards[w])}) is "
                            f"gone: sending {command!r} failed with {type(exc).__name__}{self._exit_note(w)}")
 
-    def _gather(self, what: str) -> list[Any]:
-        """Every shard's reply payload, in worker order; raises the error of the lowest
-        sub-env that failed."""
+    def _gather(self, what: str, workers: Sequence[int] | None = None) -> list[Any]:
+        """The reply payload of each of ``workers`` (default: all), in that order; raises the
+        error of the lowest sub-env that failed."""
         deadline = time.monotonic() + self.timeout
-        pending = dict(enumerate(self._workers.conns))
+        workers = list(range(self.num_workers)) if workers is None else list(workers)
+        pending = {w: self._workers.conns[w] for w in workers}
         replies: dict[int, tuple] = {}
         while pending:
             remaining = deadline - time.monotonic()
@@ -475,7 +545,7 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
                     self._fail(self._died(w, what))
         results: list[Any] = []
         error = None
-        for w in range(self.num_workers):
+        for w in workers:
             status, payload = replies[w]
             if status == "error":
                 if error is None or payload[0] < error[0]:
@@ -517,16 +587,33 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
         raise RuntimeError(message)
 
 
-def _span(shard: range) -> str:
+def _explicit_shards(assignment: Sequence[int], num_envs: int, num_workers: int | None) -> list[list[int]]:
+    """Shards from each sub-env's worker; every worker must own at least one sub-env."""
+    owner = [int(w) for w in assignment]
+    workers = max(owner, default=-1) + 1
+    if len(owner) != num_envs or min(owner, default=0) < 0 or (num_workers is not None and workers > num_workers):
+        raise ValueError(f"assignment must give each of the {num_envs} sub-envs a worker in 0..{(num_workers or workers) - 1}, "
+                         f"got {list(assignment)}")
+    shards = [[i for i, w in enumerate(owner) if w == k] for k in range(workers)]
+    if not all(shards):
+        raise ValueError(f"assignment leaves a worker without sub-envs: {list(assignment)}")
+    return shards
+
+
+def _span(shard: Sequence[int]) -> str:
     if len(shard) == 1:
-        return str(shard.start)
-    step = f" step {shard.step}" if shard.step != 1 else ""
-    return f"{shard.start}..{shard[-1]}{step}"
+        return str(shard[0])
+    if isinstance(shard, range):
+        step = f" step {shard.step}" if shard.step != 1 else ""
+        return f"{shard.start}..{shard[-1]}{step}"
+    return ",".join(map(str, shard))
 
 
-def _take(seq: Any, shard: range) -> Any:
-    """The items of a list/tuple/array at the sub-envs of `shard` (a slice: cheap)."""
-    return seq[shard.start:shard.stop:shard.step]
+def _take(seq: Any, shard: Sequence[int]) -> Any:
+    """The items of a list/tuple/array at the sub-envs of `shard` (a slice for a range)."""
+    if isinstance(shard, range):
+        return seq[shard.start:shard.stop:shard.step]
+    return [seq[i] for i in shard]
 
 
 def _picklable(fn: Callable) -> Callable:

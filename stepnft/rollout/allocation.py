@@ -1,6 +1,6 @@
 """Where rollouts go: how many of an iteration's episodes each task plays.
 
-``equal`` gives every task the same share (whole waves of every sub-env). ``informative``
+``equal`` gives every task the same share. ``informative``
 gives more episodes to the tasks that can teach most: a task whose episodes all succeed or all
 fail yields (almost) no contrast between successes and failures, while one near 50 % yields the
 most. Each task's share is ``floor / T + (1 - floor) * w_t / sum(w)`` with
@@ -44,8 +44,8 @@ class TaskAllocator:
         return self.floor / n + (1 - self.floor) * spread
 
     def allocate(self, episodes: int, multiple: int = 1) -> list[int] | None:
-        """Episodes per task for the next iteration (None: ``equal``, whole waves of every
-        sub-env), each a multiple of ``multiple`` (a GRPO group) and at least one group."""
+        """Episodes per task for the next iteration (None: ``equal``, the collector splits them
+        evenly), each a multiple of ``multiple`` (a GRPO group) and at least one group."""
         if self.mode == "equal":
             return None
         groups = max(len(self.success), int(np.ceil(episodes / multiple)))

@@ -1,176 +1,81 @@
-"""The collector: plays whole episodes of a policy in a vector env and returns a :class:`Batch`.
+"""The collector: plays the episodes of a plan with a policy in a vector env and returns a
+:class:`Batch`.
 
-One *wave* = every active sub-env plays exactly one episode from a reset (autoreset disabled,
-the finished sub-envs idle). :meth:`Collector.collect` plays waves until it has the episodes an
-iteration asks for, per task if asked (sub-envs a task does not need sit the wave out),
-sampling as the algorithm's :class:`RolloutSpec` says and recording its denoising steps; with
-``group_size`` G, consecutive groups of G sub-envs of a task start from one shared initial
-state. Evaluation plays ODE waves from fixed initial-state seeds. The collector assigns no
-labels: what an episode's outcome means is the algorithm's business.
+Continuous collection: every sub-env plays episodes of its task back to back, a new one as
+soon as its last one ended, until the plan is done (the plan: ``stepnft.rollout.plan``). The
+vector env's sub-envs form two *lanes* (``stepnft.envs.base.LANES``) that take turns: while
+the workers step one lane, this process computes the next actions of the other. Each lane
+plays a fixed share of the plan (episode ``j`` of a task goes to the lane of the task's sub-env
+``j mod n``), its sub-envs taking the lane's episodes of their task in plan order as they come
+free. Everything a lane does follows from its episodes and the policy, never from timing, so
+the same plan gives the same batch, bit for bit, with any number of worker processes.
 
-``collect`` and ``state_dict`` are the seam a remote (e.g. Ray) collector implements.
+:meth:`Collector.collect` draws an iteration's plan (per-task counts, groups of episodes
+sharing one initial state) and records what the algorithm's :class:`RolloutSpec` asks;
+evaluation plays fixed plans without recording. The collector assigns no labels: what an
+episode's outcome means is the algorithm's business. ``play`` and ``state_dict`` are the seam a
+remote (e.g. Ray) collector implements.
 """
 
 from __future__ import annotations
 
+import collections
 import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import RolloutSpec
 from stepnft.batch import Batch
 from stepnft.devices import to_device
+from stepnft.envs.base import LANES
 from stepnft.policies.base import Policy
+from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
-
-def sub_env_generators(seed: int, num_envs: int) -> tuple[torch.Generator, list[torch.Generator]]:
-    """The collector's own generator (group seeds) and one sampler generator per sub-env, all
-    derived from ``seed``: sub-env ``i``'s noise depends only on ``(seed, i)``, so any split of
-    the sub-envs over workers draws the same episodes."""
-    streams = np.random.SeedSequence(seed).spawn(num_envs + 1)
-    gens = [torch.Generator().manual_seed(int(s.generate_state(1, np.uint64)[0] >> np.uint64(1))) for s in streams]
-    return gens[0], gens[1:]
+Progress = Callable[[int, int], None]
+"""``progress(episodes_done, episodes)``, called as episodes end."""
 
 
 class Collector:
-    """Owns a chunk vector env and the sampler's random generators (one per sub-env)."""
+    """Owns a chunk vector env and the generator that draws training plans."""
 
     def __init__(self, venv, seed: int = 0):
         self.venv = venv
-        self.generator, self.env_generators = sub_env_generators(seed, venv.num_envs)
+        self.generator = torch.Generator().manual_seed(seed)
 
     @property
     def num_envs(self) -> int:
         return self.venv.num_envs
 
+    def plan(self, episodes: int, spec: RolloutSpec, task_episodes: list[int] | None = None) -> EpisodePlan:
+        """An iteration's episodes: ``task_episodes[k]`` of task ``k``, or ``episodes`` split
+        equally (each task's share rounded up to whole groups of ``spec.group_size``)."""
+        tasks = len(self.venv.tasks)
+        if task_episodes is None:
+            task_episodes = [math.ceil(episodes / tasks / spec.group_size) * spec.group_size] * tasks
+        if len(task_episodes) != tasks:
+            raise ValueError(f"task_episodes must give one count per task ({tasks}), got {task_episodes}")
+        return EpisodePlan.draw(task_episodes, spec.group_size, self.generator)
+
     def collect(self, policy: Policy, episodes: int, spec: RolloutSpec,
                 task_episodes: list[int] | None = None) -> Batch:
-        """At least ``episodes`` episodes (whole waves of every sub-env) sampled and recorded as
-        ``spec`` says; or, with ``task_episodes``, exactly that many of each task."""
-        if task_episodes is None:
-            waves = [None] * math.ceil(episodes / self.num_envs)
-        else:
-            waves = self._wave_masks(task_episodes, spec.group_size)
-        return Batch.concat([self.play_wave(policy, spec.noise_level, self.env_generators, record=spec, active=active)
-                             for active in waves])
+        """An iteration's episodes (:meth:`plan`), sampled and recorded as ``spec`` says."""
+        return self.play(policy, self.plan(episodes, spec, task_episodes), spec.noise_level, record=spec)
 
-    def _wave_masks(self, task_episodes: list[int], group_size: int) -> list[np.ndarray]:
-        """Active sub-envs of each wave so that task k plays ``task_episodes[k]`` episodes."""
-        task_ids = np.asarray(self.venv.task_ids)
-        per_task = [np.flatnonzero(task_ids == k) for k in range(len(self.venv.tasks))]
-        if len(task_episodes) != len(per_task) or any(n % group_size for n in task_episodes):
-            raise ValueError(f"task_episodes must give one count per task, each a multiple of {group_size}")
-        waves = max(math.ceil(n / len(envs)) for n, envs in zip(task_episodes, per_task))
-        masks = [np.zeros(self.num_envs, dtype=bool) for _ in range(waves)]
-        for n, envs in zip(task_episodes, per_task):
-            for w in range(waves):
-                masks[w][envs[: max(0, min(len(envs), n - w * len(envs)))]] = True
-        return [m for m in masks if m.any()]
-
-    def _group_seeds(self, active: np.ndarray, group_size: int) -> list[int | None]:
-        """Reset seeds giving each group of ``group_size`` active sub-envs of a task one initial state."""
-        seeds: list[int | None] = [None] * self.num_envs
-        task_ids = np.asarray(self.venv.task_ids)
-        for k in range(len(self.venv.tasks)):
-            envs = np.flatnonzero(active & (task_ids == k))
-            if len(envs) % group_size:
-                raise ValueError(f"{len(envs)} sub-envs of task {self.venv.tasks[k]!r} in a wave do not split into "
-                                 f"groups of {group_size}: make env.envs_per_task a multiple of the group size")
-            for group in envs.reshape(-1, group_size):
-                # Far above evaluation seeds and below demonstration seeds (stepnft.data.demos).
-                seed = int(torch.randint(2**24, 2**31, (1,), generator=self.generator))
-                for i in group:
-                    seeds[i] = seed
-        return seeds
-
-    def _wave_plan(self, seeds: list[int] | None, record: RolloutSpec | None,
-                   active: np.ndarray | None) -> tuple[list[int] | None, np.ndarray]:
-        """A wave's reset seeds (drawn here for groups when ``record`` asks for them and none
-        are given) and its active sub-envs (default: all)."""
-        active = np.ones(self.num_envs, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        if record is not None and record.group_size > 1 and seeds is None:
-            seeds = self._group_seeds(active, record.group_size)
-        return seeds, active
-
-    def play_wave(self, policy: Policy, noise_level: float, generators: list[torch.Generator],
-                  seeds: list[int] | None = None, record: RolloutSpec | None = None,
-                  active: np.ndarray | None = None) -> Batch:
-        """Every sub-env in ``active`` (default: all) plays one episode from
-        ``reset(seed=seeds)``, sub-env ``i`` sampling with ``generators[i]``; the others sit the
-        wave out. With ``record`` the batch holds the policy calls and recorded denoising
-        steps, else only the episode table."""
-        venv, n = self.venv, self.venv.num_envs
-        horizon, action_dim = policy.chunk_shape
-        n_exec = policy.config.n_exec
-        seeds, active = self._wave_plan(seeds, record, active)
-        if active.all():
-            raw, _ = venv.reset(seed=seeds)
-        else:
-            venv.reset(seed=seeds, options={"reset_mask": active.copy()})
-            raw, _ = venv.reset(options={"reset_mask": ~active, "idle": True})
-        rows = np.flatnonzero(active)  # sub-envs playing: the rows of the episode table
-        task_ids = torch.as_tensor(venv.task_ids)
-        done = ~active
-        success = np.zeros(n, dtype=bool)
-        length = np.zeros(n, dtype=np.int64)
-        stochastic_steps = record.stochastic_steps if record else "all"
-        keep_path = record is not None and record.record_steps == "all"
-        calls: list[dict[str, Tensor]] = []
-        steps: list[dict[str, Tensor]] = []
-        num_calls = 0
-        while not done.all():
-            playing = np.flatnonzero(~done)
-            obs = {k: torch.as_tensor(v[playing]) for k, v in raw.items()} | {"task": task_ids[playing]}
-            # Processed on the CPU, sampled on the policy's device, the chunk back on the CPU.
-            sample = to_device(policy.sample(policy.prepare(obs), noise_level=noise_level,
-                                             generator=[generators[i] for i in playing],
-                                             stochastic_steps=stochastic_steps, keep_path=keep_path), "cpu")
-            chunk = np.zeros((n, n_exec, policy.config.action_dim), dtype=np.float32)
-            chunk[playing] = policy.env_actions(sample.actions[:, :n_exec]).clamp(-1.0, 1.0).numpy()
-            raw, reward, terminated, truncated, info = venv.step(chunk)
-            executed = np.asarray(info["steps"])[playing]
-            length[playing] += executed
-            success |= np.asarray(info["success"], dtype=bool) & ~done
-            ended = (np.asarray(terminated) | np.asarray(truncated))[playing]
-            done[playing] |= ended
-            if record is not None:
-                calls.append({
-                    "obs": obs, "actions": sample.actions,
-                    "mask": torch.arange(horizon)[None, :] < torch.as_tensor(executed)[:, None],
-                    "reward": torch.as_tensor(np.asarray(reward, dtype=np.float32)[playing]),
-                    "done": torch.as_tensor(ended),
-                    "episode": torch.as_tensor(np.searchsorted(rows, playing), dtype=torch.int64),
-                })
-                step = sample.recorded_steps(every_step=keep_path)
-                step["call"] = step["call"] + num_calls
-                steps.append(step)
-                num_calls += len(playing)
-        seed_of = [-1 if seeds is None or seeds[i] is None else seeds[i] for i in rows]
-        episodes = {
-            "episode_success": torch.as_tensor(success[rows]), "episode_task": task_ids[rows].clone(),
-            "episode_length": torch.as_tensor(length[rows]), "episode_seed": torch.as_tensor(seed_of, dtype=torch.int64),
-        }
-        if record is None:
-            return Batch(**episodes, **_empty_tables(raw, horizon, action_dim))
-        return Batch(
-            **episodes,
-            obs={k: torch.cat([c["obs"][k] for c in calls]) for k in calls[0]["obs"]},
-            **{k: torch.cat([c[k] for c in calls]) for k in ("actions", "mask", "reward", "done", "episode")},
-            **{k: torch.cat([s[k] for s in steps]) for k in ("call", "x_t", "x_next", "v_old", "t", "dt")},
-        )
+    def play(self, policy: Policy, plan: EpisodePlan, noise_level: float, record: RolloutSpec | None = None,
+             progress: Progress | None = None) -> Batch:
+        """Every episode of ``plan``, in its order in the batch. With ``record`` the batch holds
+        the policy calls and recorded denoising steps, else only the episode table."""
+        return _Play(self.venv, policy, plan, noise_level, record, progress).run()
 
     def state_dict(self) -> dict:
-        """The sub-envs' RNG states and the generators: enough to resume exactly."""
-        return {"env_rng": self.venv.rng_state(), "generator": self.generator.get_state(),
-                "env_generators": [g.get_state() for g in self.env_generators]}
+        """The plan generator's state: enough to resume exactly."""
+        return {"generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.venv.set_rng_state(state["env_rng"])
         self.generator.set_state(state["generator"])
-        for g, g_state in zip(self.env_generators, state["env_generators"], strict=True):
-            g.set_state(g_state)
 
     def pop_metrics(self) -> dict[str, float]:
         """Metrics of the collector itself since the last call (a remote collector's weight
@@ -181,12 +86,167 @@ class Collector:
         self.venv.close()
 
 
-def _empty_tables(raw: dict, horizon: int, action_dim: int) -> dict:
-    """Call and step tables with no rows (a wave played without recording)."""
+def plan_lanes(plan: EpisodePlan, task_ids: np.ndarray, lanes: np.ndarray) -> np.ndarray:
+    """``[E]`` the lane of every episode: episode ``j`` of task ``k`` (in plan order) goes to
+    the lane of the task's sub-env ``j mod n`` (``n`` its sub-envs), so each lane gets episodes
+    in proportion to its sub-envs of the task."""
+    out = np.empty(len(plan), dtype=np.int64)
+    for k in np.unique(plan.task):
+        mine = np.flatnonzero(plan.task == k)
+        task_lanes = lanes[task_ids == k]
+        if len(task_lanes) == 0:
+            raise ValueError(f"the plan has episodes of task {k}, which has no sub-env")
+        out[mine] = task_lanes[np.arange(len(mine)) % len(task_lanes)]
+    return out
+
+
+@dataclass
+class _Lane:
+    """One lane's sub-envs, its queue of episodes per task, and what it sent last."""
+
+    sub_envs: np.ndarray
+    queue: dict[int, collections.deque]
+    playing: dict[int, int] = field(default_factory=dict)
+    """sub-env -> the plan row of the episode it plays."""
+    obs: dict[int, dict] = field(default_factory=dict)
+    """sub-env -> its latest observation."""
+    sent: list[tuple[int, str]] = field(default_factory=list)
+    """(sub-env, op) of the ops in flight."""
+    call_rows: list[int] = field(default_factory=list)
+    """The batch call row of each step op in flight."""
+
+
+class _Play:
+    """One :meth:`Collector.play`: the lanes take turns until the plan is done."""
+
+    def __init__(self, venv, policy: Policy, plan: EpisodePlan, noise_level: float, record: RolloutSpec | None,
+                 progress: Progress | None):
+        self.venv, self.policy, self.plan, self.noise_level = venv, policy, plan, noise_level
+        self.record, self.progress = record, progress
+        self.task_ids = np.asarray(venv.task_ids)
+        self.generators = plan.generators()
+        n = len(plan)
+        self.success, self.length, self.ended = np.zeros(n, bool), np.zeros(n, np.int64), 0
+        self.calls: list[dict[str, Tensor]] = []  # one entry per policy call batch
+        self.call_episode: list[int] = []  # plan row of every call, in call order
+        self.call_info: list[list] = []  # [steps executed, reward, done] of every call
+        self.steps: list[dict[str, Tensor]] = []
+        lane_of = plan_lanes(plan, self.task_ids, np.asarray(venv.lanes))
+        self.lanes = []
+        for lane in range(LANES):
+            queue = {k: collections.deque(np.flatnonzero((lane_of == lane) & (plan.task == k)).tolist())
+                     for k in range(len(venv.tasks))}
+            self.lanes.append(_Lane(np.flatnonzero(np.asarray(venv.lanes) == lane), queue))
+
+    def run(self) -> Batch:
+        self.policy.eval()
+        turns = collections.deque(lane for lane in self.lanes if self._send(lane, self._resets(lane)))
+        while turns:
+            lane = turns.popleft()
+            self._receive(lane, self.venv.receive_ops())
+            steps = self._act(lane)  # before the resets: a sub-env acts once its reset came back
+            if self._send(lane, steps + self._resets(lane)):
+                turns.append(lane)
+        return self._batch()
+
+    # --- one turn of a lane ---------------------------------------------------------------------
+    def _resets(self, lane: _Lane) -> list[tuple[int, str, int]]:
+        """Start the next queued episode on each free sub-env of the lane."""
+        ops = []
+        for i in lane.sub_envs:
+            queue = lane.queue[int(self.task_ids[i])]
+            if int(i) not in lane.playing and queue:
+                row = queue.popleft()
+                lane.playing[int(i)] = row
+                ops.append((int(i), "reset", int(self.plan.seed[row])))
+        return ops
+
+    def _act(self, lane: _Lane) -> list[tuple[int, str, np.ndarray]]:
+        """One policy call for every sub-env of the lane that is in an episode."""
+        acting = sorted(lane.playing)
+        if not acting:
+            return []
+        policy, record = self.policy, self.record
+        rows = [lane.playing[i] for i in acting]
+        keys = lane.obs[acting[0]].keys()
+        obs = {k: torch.as_tensor(np.stack([lane.obs[i][k] for i in acting])) for k in keys}
+        obs["task"] = torch.as_tensor(self.task_ids[acting])
+        keep_path = record is not None and record.record_steps == "all"
+        # Processed on the CPU, sampled on the policy's device, the chunk back on the CPU.
+        sample = to_device(policy.sample(policy.prepare(obs), noise_level=self.noise_level,
+                                         generator=[self.generators[r] for r in rows],
+                                         stochastic_steps=record.stochastic_steps if record else "all",
+                                         keep_path=keep_path), "cpu")
+        chunk = policy.env_actions(sample.actions[:, :policy.config.n_exec]).clamp(-1.0, 1.0).numpy()
+        lane.call_rows = list(range(len(self.call_episode), len(self.call_episode) + len(acting)))
+        if record is not None:
+            self.calls.append({"obs": obs, "actions": sample.actions})
+            step = sample.recorded_steps(every_step=keep_path)
+            step["call"] = step["call"] + len(self.call_episode)
+            self.steps.append(step)
+        self.call_episode += rows
+        self.call_info += [[0, 0.0, False] for _ in acting]
+        return [(i, "step", chunk[n]) for n, i in enumerate(acting)]
+
+    def _send(self, lane: _Lane, ops: list) -> bool:
+        lane.sent = [(i, op) for i, op, _ in ops]
+        if ops:
+            self.venv.send_ops(ops)
+        return bool(ops)
+
+    def _receive(self, lane: _Lane, results: list) -> None:
+        """Take the results of the lane's ops: new observations, and for steps the call's
+        outcome and the episodes that ended."""
+        calls = iter(lane.call_rows)
+        for (i, op), result in zip(lane.sent, results, strict=True):
+            lane.obs[i] = result[0]
+            if op == "reset":
+                continue
+            _, reward, terminated, truncated, info = result
+            row, call = lane.playing[i], next(calls)
+            self.call_info[call] = [int(info["steps"]), float(reward), bool(terminated or truncated)]
+            self.length[row] += int(info["steps"])
+            self.success[row] = bool(info["success"])
+            if terminated or truncated:
+                del lane.playing[i]
+                self.ended += 1
+                if self.progress is not None:
+                    self.progress(self.ended, len(self.plan))
+
+    # --- the batch ---------------------------------------------------------------------------------
+    def _batch(self) -> Batch:
+        """The batch in plan order: episodes as planned, each episode's calls together in call
+        order, each call's recorded steps together."""
+        plan = self.plan
+        episodes = {"episode_success": torch.as_tensor(self.success), "episode_task": torch.as_tensor(plan.task),
+                    "episode_length": torch.as_tensor(self.length), "episode_seed": torch.as_tensor(plan.seed)}
+        if self.record is None:
+            return Batch(**episodes, **_empty_tables(self.policy))
+        episode_of = torch.as_tensor(self.call_episode, dtype=torch.int64)
+        order = torch.argsort(episode_of, stable=True)  # calls are appended in time order
+        new_call = torch.empty_like(order)
+        new_call[order] = torch.arange(len(order))
+        steps = {k: torch.cat([s[k] for s in self.steps]) for k in ("call", "x_t", "x_next", "v_old", "t", "dt")}
+        step_order = torch.argsort(new_call[steps["call"]], stable=True)
+        executed, reward, done = zip(*self.call_info)
+        horizon = self.policy.chunk_shape[0]
+        return Batch(
+            **episodes,
+            obs={k: torch.cat([c["obs"][k] for c in self.calls])[order] for k in self.calls[0]["obs"]},
+            actions=torch.cat([c["actions"] for c in self.calls])[order],
+            mask=(torch.arange(horizon)[None, :] < torch.as_tensor(executed)[:, None])[order],
+            reward=torch.as_tensor(reward, dtype=torch.float32)[order], done=torch.as_tensor(done)[order],
+            episode=episode_of[order],
+            call=new_call[steps["call"]][step_order],
+            **{k: v[step_order] for k, v in steps.items() if k != "call"},
+        )
+
+
+def _empty_tables(policy: Policy) -> dict:
+    """Call and step tables with no rows (episodes played without recording)."""
+    horizon, action_dim = policy.chunk_shape
     chunk = torch.zeros(0, horizon, action_dim)
-    obs = {k: torch.zeros((0, *np.asarray(v).shape[1:]), dtype=torch.as_tensor(np.asarray(v)).dtype)
-           for k, v in raw.items()}
-    obs["task"] = torch.zeros(0, dtype=torch.int64)
+    obs = {"state": torch.zeros(0), "task": torch.zeros(0, dtype=torch.int64)}
     return {"obs": obs, "actions": chunk, "mask": torch.zeros(0, horizon, dtype=torch.bool),
             "reward": torch.zeros(0), "done": torch.zeros(0, dtype=torch.bool),
             "episode": torch.zeros(0, dtype=torch.int64), "call": torch.zeros(0, dtype=torch.int64),

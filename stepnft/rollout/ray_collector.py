@@ -1,28 +1,27 @@
-"""Rollouts on Ray: a :class:`~stepnft.rollout.collector.Collector` whose waves are played by
+"""Rollouts on Ray: a :class:`~stepnft.rollout.collector.Collector` whose episodes are played by
 Ray actors, each owning a share of the sub-envs and a copy of the acting policy.
 
-The driver keeps everything that decides *which* episodes are played (waves, per-task
-allocation, group seeds: the local collector's code) and sends each worker its part of a wave.
-Sub-env ``i`` is built with the task and seed it has in ``make_vec_env`` and samples its noise
-from its own generator, whose state travels with the wave and comes back after it; the parts
-are merged in the order one process would have written them (:func:`merge_wave`). So for the
-same seeds the batch is the local collector's (a policy forward on a smaller batch may differ
-in the last float bits). Evaluation (:func:`stepnft.evaluate.evaluate_policy`) plays its waves
-through the same path, on the workers.
+The driver keeps everything that decides *which* episodes are played (the plan: per-task
+allocation, groups, reset and noise seeds; the local collector's code) and sends each worker
+its part of the plan (episode ``j`` of a task to the ``j mod n``-th of the ``n`` workers that
+hold sub-envs of it); each worker plays its part continuously with a local collector, and the
+parts are merged back into plan order (:func:`merge_parts`). An episode's initial state and
+noise come with the plan, so the batch is the local collector's (a policy forward on another
+batch of rows may differ in the last float bits). Evaluation
+(:func:`stepnft.evaluate.evaluate_policy`) plays its fixed plan through the same path.
 
-Weights go with the first wave after they changed: a whole policy the first time a worker sees
+Weights go with the first part played after they changed: a whole policy the first time a worker sees
 it, afterwards only the tensors written since. Changes are seen through torch's version
 counters, which every in-place write bumps (optimizer steps, the EMA update,
 ``load_state_dict``); a write through ``.data`` does not and would go unnoticed.
 
-Failures: a worker that dies (process killed, node lost, out of memory) or does not answer a
-wave within ``ray.timeout_s`` (then it is killed) is restarted by Ray. Its episodes of that
-wave are dropped and counted (``charts/dropped_episodes``), its sub-envs resume their RNG
-streams from before the lost wave, and training goes on with the other workers' episodes (a
-wave that lost every episode is played again; with groups, incomplete groups are dropped).
-Evaluation waves (nothing recorded: fixed initial states) play the lost part again instead. A
-worker lost more than ``ray.max_restarts`` times ends the run with an error; ``stepnft train
---resume`` continues it from its last checkpoint.
+Failures: a worker that dies (process killed, node lost, out of memory) or does not answer its
+part within ``ray.timeout_s`` (then it is killed) is restarted by Ray. Its episodes are dropped
+and counted (``charts/dropped_episodes``) and training goes on with the other workers' episodes
+(a plan that lost every episode is played again; with groups, incomplete groups are dropped).
+Evaluation (nothing recorded: a fixed plan) plays the lost part again instead. A worker lost
+more than ``ray.max_restarts`` times ends the run with an error; ``stepnft train --resume``
+continues it from its last checkpoint.
 
 Ray is imported only when a :class:`RayCollector` is built (``pip install "stepnft[ray]"``).
 """
@@ -42,12 +41,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from stepnft.algos.base import RolloutSpec
 from stepnft.batch import CALL_KEYS, EPISODE_KEYS, STEP_KEYS, Batch
 from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs.base import lane_ids
 from stepnft.envs.sharded import shard_ranges
 from stepnft.policies.base import Policy
-from stepnft.rollout.collector import Collector
+from stepnft.rollout.collector import Collector, Progress
+from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
 MAX_POLICIES = 3
 """Policies a worker keeps (e.g. π-StepNFT's EMA rollout policy and the evaluated one)."""
@@ -101,9 +101,9 @@ class RolloutWorker:
     def pid(self) -> int:
         return os.getpid()
 
-    def hello(self) -> tuple[str, list[dict]]:
-        """This incarnation and its sub-envs' RNG states."""
-        return self.incarnation, self.collector.venv.rng_state()
+    def hello(self) -> str:
+        """This incarnation."""
+        return self.incarnation
 
     def sync(self, incarnation, slot, policy, weights, training) -> float | None:
         """:meth:`_sync` alone; None, doing nothing, when the driver expects another ``incarnation``."""
@@ -127,49 +127,34 @@ class RolloutWorker:
         self.policies[slot].train(training)
         return time.perf_counter() - start
 
-    def play(self, incarnation, slot, policy, weights, training, noise_level, generator_states, seeds, record, active,
-             env_rng):
-        """This worker's part of a wave (see :meth:`Collector.play_wave`), after syncing the
-        policy and, for a restarted worker, restoring its sub-envs' RNG states. Returns this
-        incarnation, the batch, the sub-envs' RNG states, the generators' states and the sync's
-        seconds; or None, playing nothing, when the driver expects another ``incarnation``."""
+    def play(self, incarnation, slot, policy, weights, training, plan: EpisodePlan, noise_level: float,
+             record: RolloutSpec | None):
+        """This worker's part of a plan (:meth:`Collector.play`), after syncing the policy.
+        Returns this incarnation, the batch and the sync's seconds; or None, playing nothing,
+        when the driver expects another ``incarnation``."""
         if incarnation is not None and incarnation != self.incarnation:
             return None
         sync_s = self._sync(slot, policy, weights, training)
-        if env_rng is not None:
-            self.collector.venv.set_rng_state(env_rng)
-        generators = []
-        for state in generator_states:
-            generators.append(torch.Generator())
-            generators[-1].set_state(state)
-        batch = self.collector.play_wave(self.policies[slot], noise_level, generators, seeds=seeds, record=record,
-                                         active=active)
-        return self.incarnation, batch, self.collector.venv.rng_state(), [g.get_state() for g in generators], sync_s
+        return self.incarnation, self.collector.play(self.policies[slot], plan, noise_level, record), sync_s
 
 
 class RemoteEnvs:
     """The sub-envs as the driver sees them (the workers own them): the layout every
-    collector reads (``tasks``, ``instructions``, ``instruction_variants``, ``task_ids``) and each sub-env's RNG state
-    after its last wave (checkpointed; restored into a restarted worker)."""
+    collector reads (``tasks``, ``instructions``, ``instruction_variants``, ``task_ids``, ``lanes``)."""
 
     def __init__(self, tasks: list[str], instructions: list[str], instruction_variants: list[list[str]],
                  task_ids: np.ndarray):
         self.tasks, self.instructions, self.task_ids = list(tasks), list(instructions), np.asarray(task_ids)
         self.instruction_variants = [list(v) for v in instruction_variants]
         self.task_names = [self.tasks[i] for i in self.task_ids]
-        self.rng: list[dict | None] = [None] * len(self.task_ids)
+        self.lanes = lane_ids(self.task_ids)
 
     @property
     def num_envs(self) -> int:
         return len(self.task_ids)
 
-    def rng_state(self) -> list[dict]:
-        return list(self.rng)
-
-    def set_rng_state(self, states: list[dict]) -> None:
-        if len(states) != self.num_envs:
-            raise ValueError(f"{len(states)} sub-env RNG states for {self.num_envs} sub-envs")
-        self.rng = list(states)
+    def close(self) -> None:
+        """The workers own the sub-envs: :meth:`RayCollector.close` ends them."""
 
 
 @dataclass
@@ -177,10 +162,9 @@ class _Worker:
     actor: Any
     sub_envs: np.ndarray
     incarnation: str | None = None
-    """The actor's incarnation the driver knows; None after a loss (the next wave restores it)."""
+    """The actor's incarnation the driver knows; None after a loss (learnt again when it is back)."""
     weights: OrderedDict = field(default_factory=OrderedDict)
     """slot -> fingerprint of the weights its copy holds (mirrors the actor's eviction)."""
-    restore_rng: bool = False
     losses: int = 0
 
 
@@ -233,9 +217,8 @@ class RayCollector(Collector):
                                    f"(is stepnft installed on every node? they need {needed:g} CPUs, the "
                                    f"cluster has {available:g})") from err
             raise
-        for w, (w.incarnation, states) in zip(self.workers, hellos):
-            for i, state in zip(w.sub_envs, states):
-                self.venv.rng[i] = state
+        for w, incarnation in zip(self.workers, hellos):
+            w.incarnation = incarnation
 
     # --- weights ------------------------------------------------------------------------------
     def _slot(self, policy: Policy) -> int:
@@ -274,7 +257,7 @@ class RayCollector(Collector):
         return messages, slot, (structure, versions)
 
     def push(self, policy: Policy) -> float:
-        """Bring every worker's copy of ``policy`` up to date now (the waves do it themselves);
+        """Bring every worker's copy of ``policy`` up to date now (playing does it itself);
         returns the seconds until all have it."""
         start = time.perf_counter()
         messages, slot, fingerprint = self._weight_messages(policy, list(range(len(self.workers))))
@@ -282,7 +265,7 @@ class RayCollector(Collector):
                                 timeout=self.cfg.timeout_s)
         for k, (w, reply) in enumerate(zip(self.workers, replies)):
             if reply is None:
-                self._lose(k, "restarted since its last wave", dropped=0)
+                self._lose(k, "restarted since it was last seen", dropped=0)
             else:
                 self._hold(w, slot, fingerprint)
         return time.perf_counter() - start
@@ -294,80 +277,81 @@ class RayCollector(Collector):
         while len(worker.weights) > MAX_POLICIES:
             worker.weights.popitem(last=False)
 
-    # --- waves --------------------------------------------------------------------------------
-    def play_wave(self, policy: Policy, noise_level: float, generators: list[torch.Generator],
-                  seeds: list[int] | None = None, record: RolloutSpec | None = None,
-                  active: np.ndarray | None = None) -> Batch:
-        """:meth:`Collector.play_wave` on the workers (see the module doc for lost workers)."""
-        seeds, active = self._wave_plan(seeds, record, active)
+    # --- episodes -------------------------------------------------------------------------------
+    def play(self, policy: Policy, plan: EpisodePlan, noise_level: float, record: RolloutSpec | None = None,
+             progress: Progress | None = None) -> Batch:
+        """:meth:`Collector.play` on the workers (see the module doc for lost workers);
+        ``progress`` is told as each worker's part comes back."""
+        parts = self._owners(plan)
         while True:
-            parts = self._play_parts(policy, noise_level, generators, seeds, record, active)
-            if parts:
+            done = self._play_parts(policy, plan, parts, noise_level, record, progress)
+            if done:
                 break
-        sub_envs = [w.sub_envs[active[w.sub_envs]] for w, _ in parts]
+        rows = [parts[k] for k in sorted(done)]
+        batches = [done[k] for k in sorted(done)]
         keep = None
-        if record is not None and record.group_size > 1 and len(parts) < self._busy(active):
-            keep = _whole_groups(Batch.concat([b for _, b in parts]), record.group_size)
-        return merge_wave([b for _, b in parts], sub_envs, keep)
+        if record is not None and record.group_size > 1 and len(done) < len(parts):
+            keep = _whole_groups(Batch.concat(batches), record.group_size)
+        return merge_parts(batches, rows, keep)
 
-    def _busy(self, active: np.ndarray) -> int:
-        return sum(bool(active[w.sub_envs].any()) for w in self.workers)
+    def _owners(self, plan: EpisodePlan) -> dict[int, np.ndarray]:
+        """worker -> the plan rows it plays: episode ``j`` of a task to the ``j mod n``-th of
+        the ``n`` workers holding sub-envs of that task."""
+        owner = np.empty(len(plan), dtype=np.int64)
+        for k in np.unique(plan.task):
+            mine = np.flatnonzero(plan.task == k)
+            holders = [w for w, worker in enumerate(self.workers) if (self.venv.task_ids[worker.sub_envs] == k).any()]
+            owner[mine] = np.asarray(holders)[np.arange(len(mine)) % len(holders)]
+        return {w: np.flatnonzero(owner == w) for w in np.unique(owner).tolist()}
 
-    def _play_parts(self, policy, noise_level, generators, seeds, record, active) -> list[tuple[_Worker, Batch]]:
+    def _play_parts(self, policy, plan, parts, noise_level, record, progress) -> dict[int, Batch]:
         ray = self._ray
-        jobs = [k for k, w in enumerate(self.workers) if active[w.sub_envs].any()]
-        done: dict[int, Batch] = {}
+        jobs, done, played = list(parts), {}, 0
         while jobs:
             for k in jobs:
                 if self.workers[k].incarnation is None:
                     self._call(k, "pid")  # a lost worker: wait until Ray has restarted it
             messages, slot, fingerprint = self._weight_messages(policy, jobs)
-            refs = {}
-            for k in jobs:
-                w = self.workers[k]
-                refs[w.actor.play.remote(
-                    w.incarnation, *messages[k], noise_level, [generators[i].get_state() for i in w.sub_envs],
-                    None if seeds is None else [seeds[i] for i in w.sub_envs], record, active[w.sub_envs],
-                    [self.venv.rng[i] for i in w.sub_envs] if w.restore_rng else None)] = k
-            ready, hung = ray.wait(list(refs), num_returns=len(refs), timeout=self.cfg.timeout_s)
+            refs = {self.workers[k].actor.play.remote(self.workers[k].incarnation, *messages[k], plan.take(parts[k]),
+                                                      noise_level, record): k for k in jobs}
             lost, restarted = [], []
-            for ref in ready:
-                k, w = refs[ref], self.workers[refs[ref]]
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1, timeout=self.cfg.timeout_s)
+                if not ready:
+                    break
+                k, w = refs[ready[0]], self.workers[refs[ready[0]]]
                 try:
-                    reply = ray.get(ref)
+                    reply = ray.get(ready[0])
                 except _worker_lost_errors(ray) as err:
                     lost.append((k, str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__))
                     continue
-                if reply is None:  # restarted by Ray since its last wave: it played nothing
+                if reply is None:  # restarted by Ray since its last part: it played nothing
                     restarted.append(k)
                     continue
-                w.incarnation, batch, env_rng, generator_states, sync_s = reply
-                for i, rng, state in zip(w.sub_envs, env_rng, generator_states):
-                    self.venv.rng[i] = rng
-                    generators[i].set_state(state)
-                w.restore_rng = False
+                w.incarnation, done[k], sync_s = reply
                 self._hold(w, slot, fingerprint)
                 self._add_metric("time/weight_push_s", sync_s)
-                done[k] = batch
-            for ref in hung:
+                played += len(parts[k])
+                if progress is not None:
+                    progress(played, len(plan))
+            for ref in pending:
                 ray.kill(self.workers[refs[ref]].actor, no_restart=False)
                 lost.append((refs[ref], f"no answer within ray.timeout_s={self.cfg.timeout_s}s"))
             for k, why in lost:
-                self._lose(k, why, dropped=0 if record is None else int(active[self.workers[k].sub_envs].sum()))
+                self._lose(k, why, dropped=0 if record is None else len(parts[k]))
             for k in restarted:
-                self._lose(k, "restarted since its last wave", dropped=0)
-            # Evaluation plays fixed initial states: a lost part is played again.
+                self._lose(k, "restarted since its last part", dropped=0)
+            # Evaluation plays a fixed plan: a lost part is played again.
             jobs = restarted + ([k for k, _ in lost] if record is None else [])
-        return [(self.workers[k], done[k]) for k in sorted(done)]
+        return done
 
     def _lose(self, k: int, why: str, dropped: int) -> None:
-        """Worker ``k`` died or hung: Ray restarts it; its copies are gone and its sub-envs
-        resume from their RNG states before the lost wave."""
+        """Worker ``k`` died or hung: Ray restarts it; its copies are gone."""
         w = self.workers[k]
         w.losses += 1
         w.incarnation = None
         w.weights.clear()
-        w.restore_rng = True
         self._add_metric("charts/worker_restarts", 1)
         self._add_metric("charts/dropped_episodes", dropped)
         if w.losses > self.cfg.max_restarts:
@@ -375,12 +359,7 @@ class RayCollector(Collector):
                                f"ray.max_restarts={self.cfg.max_restarts}; continue with `stepnft train --resume RUN_DIR`")
         print(f"stepnft: Ray rollout worker {k} lost ({why}); {dropped} episodes dropped", file=sys.stderr, flush=True)
 
-    # --- state, metrics, shutdown -------------------------------------------------------------
-    def load_state_dict(self, state: dict) -> None:
-        super().load_state_dict(state)
-        for w in self.workers:
-            w.restore_rng = True
-
+    # --- metrics, shutdown -------------------------------------------------------------------
     def _add_metric(self, name: str, value: float) -> None:
         self._metrics[name] = self._metrics.get(name, 0.0) + float(value)
 
@@ -436,27 +415,20 @@ def _whole_groups(batch: Batch, group_size: int) -> torch.Tensor:
     return counts[inverse] % group_size == 0
 
 
-def merge_wave(parts: list[Batch], sub_envs: list[np.ndarray], keep: torch.Tensor | None = None) -> Batch:
-    """One wave's batch from the parts its workers played (``sub_envs[j]``: the sub-env of
-    each episode row of ``parts[j]``), in the order one collector playing every sub-env
-    writes: episodes by sub-env, policy calls by (call round, sub-env), each call's recorded
-    steps together, in call order. ``keep`` ([E] bool over the parts' episodes in order):
-    drop the others with their calls and steps."""
+def merge_parts(parts: list[Batch], rows: list[np.ndarray], keep: torch.Tensor | None = None) -> Batch:
+    """One batch in plan order from the parts the workers played (``rows[j]``: the plan row of
+    each episode of ``parts[j]``, in its order): episodes by plan row, each episode's calls
+    together in their order, each call's steps together. ``keep`` ([E] bool over the parts'
+    episodes in order): drop the others with their calls and steps."""
     batch = Batch.concat(parts)
-    env = torch.as_tensor(np.concatenate(sub_envs), dtype=torch.int64)
-    episodes = torch.argsort(env)
+    plan_row = torch.as_tensor(np.concatenate(rows), dtype=torch.int64)
+    episodes = torch.argsort(plan_row)
     if keep is not None:
         episodes = episodes[keep[episodes]]
     new_episode = torch.full((batch.num_episodes,), -1, dtype=torch.int64)
     new_episode[episodes] = torch.arange(len(episodes))
-    # The round of a call (the loop iteration of play_wave that made it): its rank among its episode's calls.
-    by_episode = torch.argsort(batch.episode, stable=True)
-    counts = torch.bincount(batch.episode, minlength=batch.num_episodes)
-    first = torch.cumsum(counts, 0) - counts
-    call_round = torch.empty_like(batch.episode)
-    call_round[by_episode] = torch.arange(batch.num_calls) - first[batch.episode[by_episode]]
     kept = torch.nonzero(new_episode[batch.episode] >= 0).squeeze(1)
-    calls = kept[torch.argsort(call_round[kept] * (int(env.max()) + 1) + env[batch.episode[kept]])]
+    calls = kept[torch.argsort(new_episode[batch.episode[kept]], stable=True)]
     new_call = torch.full((batch.num_calls,), -1, dtype=torch.int64)
     new_call[calls] = torch.arange(len(calls))
     kept = torch.nonzero(new_call[batch.call] >= 0).squeeze(1)

@@ -173,11 +173,11 @@ def test_worker_processes_step_like_one_process():
 def test_the_collector_records_camera_observations():
     import torch
 
-    from stepnft.algos.base import RolloutSpec
     from stepnft.config import EnvConfig
     from stepnft.policies.base import make_policy
     from stepnft.policies.flow import FlowPolicyConfig
     from stepnft.rollout.collector import Collector
+    from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
     cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, max_episode_steps=8,
                     cameras=["agentview", "robot0_eye_in_hand"], image_size=16)
@@ -185,7 +185,7 @@ def test_the_collector_records_camera_observations():
     try:
         torch.manual_seed(0)
         policy = make_policy(FlowPolicyConfig(state_dim=8, action_dim=7, lang_dim=0, horizon=4, n_exec=4))
-        batch = collector.play_wave(policy, 0.3, collector.env_generators, seeds=[0], record=RolloutSpec(0.3))
+        batch = collector.play(policy, EpisodePlan([0], [0], [0]), 0.3, record=RolloutSpec(0.3))
     finally:
         collector.close()
     assert batch.env_steps == 8 and batch.num_calls == 2

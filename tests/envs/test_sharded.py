@@ -290,3 +290,44 @@ def test_close_leaves_no_children():
     for pid in pids:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+# --- ops on any subset, several requests in flight ------------------------------------------------
+def test_ops_on_subsets_match_the_envs_stepped_alone():
+    """send_ops / receive_ops: resets and steps of some sub-envs, two requests in flight at once,
+    results in op order; the same as stepping each env by itself."""
+    venv = ShardedVectorEnv(env_fns(), num_workers=2, timeout=30, assignment=[0, 0, 1, 1, 0, 1])
+    reference = [fn() for fn in env_fns()]
+    try:
+        assert venv.assignment == "explicit" and venv.shards == [[0, 1, 4], [2, 3, 5]]
+        rng = np.random.default_rng(0)
+        venv.send_ops([(5, "reset", 7), (0, "reset", 8), (2, "reset", 9)])
+        venv.send_ops([(3, "reset", 10)])  # in flight with the first request
+        assert_identical(venv.receive_ops(), [reference[5].reset(seed=7), reference[0].reset(seed=8),
+                                              reference[2].reset(seed=9)])
+        assert_identical(venv.receive_ops(), [reference[3].reset(seed=10)])
+        for _ in range(3):
+            chunks = rng.uniform(-1, 1, size=(3, N_EXEC, 4)).astype(np.float32)
+            ops = [(2, "step", chunks[0]), (5, "step", chunks[1]), (3, "step", chunks[2])]
+            venv.send_ops(ops)
+            assert_identical(venv.receive_ops(), [reference[i].step(c) for i, _, c in ops])
+        with pytest.raises(RuntimeError, match="no ops in flight"):
+            venv.receive_ops()
+        venv.send_ops([(1, "step", np.zeros((2 * N_EXEC, 4), np.float32))])  # never reset, wrong shape
+        with pytest.raises(RuntimeError, match=r"^sub-env 1 \(worker 0\) raised in ops"):
+            venv.receive_ops()
+        venv.send_ops([(1, "reset", 3)])  # a sub-env's error leaves the env usable
+        assert_identical(venv.receive_ops(), [reference[1].reset(seed=3)])
+        with pytest.raises(ValueError, match="unknown op"):
+            venv.send_ops([(1, "render", None)])
+    finally:
+        venv.close()
+        for env in reference:
+            env.close()
+
+
+def test_explicit_assignment_is_checked():
+    with pytest.raises(ValueError, match="assignment must give each"):
+        ShardedVectorEnv([DictEnv] * 3, num_workers=2, assignment=[0, 1])
+    with pytest.raises(ValueError, match="without sub-envs"):
+        ShardedVectorEnv([DictEnv] * 3, num_workers=3, assignment=[0, 2, 2])

@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 import torch
 
-from stepnft.algos.base import RolloutSpec
 from stepnft.batch import Batch
 from stepnft.config import EnvConfig, RayConfig
 from stepnft.envs import make_vec_env
 from stepnft.evaluate import evaluate_policy
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
 from stepnft.rollout.collector import Collector
-from stepnft.rollout.ray_collector import merge_wave
+from stepnft.rollout.plan import EpisodePlan, RolloutSpec
+from stepnft.rollout.ray_collector import merge_parts
 
 GOAL, HAND = slice(36, 39), slice(0, 3)
 ENV = EnvConfig(tasks=["reach-v3", "push-v3"], envs_per_task=3, max_episode_steps=80)
@@ -47,7 +47,7 @@ class GoalSeeker(FlowPolicy):
 
 
 class SlowSeeker(GoalSeeker):
-    """Sleeps in every policy call: long waves that cost no CPU (to kill a worker mid-wave)."""
+    """Sleeps in every policy call: long episodes that cost no CPU (to kill a worker mid-part)."""
 
     delay = 0.1
 
@@ -72,27 +72,24 @@ def assert_same_batch(local: Batch, remote: Batch) -> None:
 
 
 # --- merging the workers' parts (no Ray needed) -------------------------------------------------
-def test_merged_parts_of_a_wave_are_the_whole_wave_in_its_order():
+def test_merged_parts_of_a_plan_are_the_whole_plan_in_its_order():
     venv = make_vec_env(ENV, 4, SEED)
     policy = goal_seeker()
-    spec, seeds = RolloutSpec(0.3, record_steps="all"), list(range(100, 106))
-    whole_collector = Collector(venv, seed=SEED)
-    whole = whole_collector.play_wave(policy, 0.3, whole_collector.env_generators, seeds=seeds, record=spec)
-    shards = [np.array([0, 3]), np.array([1, 4]), np.array([2, 5])]  # the workers' interleaved shares
-    parts = []
-    for shard in shards:
-        c = Collector(venv, seed=SEED)
-        parts.append(c.play_wave(policy, 0.3, c.env_generators, seeds=seeds, record=spec, active=np.isin(np.arange(6), shard)))
-    merged = merge_wave(parts, shards)
+    spec = RolloutSpec(0.3, record_steps="all")
+    plan = EpisodePlan(task=[0, 0, 0, 1, 1, 1], seed=range(100, 106), noise_seed=range(6))
+    whole = Collector(venv).play(policy, plan, 0.3, record=spec)
+    rows = [np.array([0, 3]), np.array([1, 4]), np.array([5, 2])]  # the workers' shares, any order
+    parts = [Collector(venv).play(policy, plan.take(r), 0.3, record=spec) for r in rows]
+    merged = merge_parts(parts, rows)
     assert_same_batch(whole, merged)
     assert whole.episode_success.any() and not whole.episode_success.all()
 
-    keep = torch.tensor([True, False, True, True, True, True])  # drop sub-env 3 with its calls and steps
-    kept = merge_wave(parts, shards, keep)
-    assert kept.num_episodes == 5 and kept.episode_seed.tolist() == [100, 101, 102, 104, 105]
-    calls, steps = merged.episode != 3, merged.step_episode != 3
+    keep = torch.tensor([True, True, True, False, True, True])  # drop plan row 4 with its calls and steps
+    kept = merge_parts(parts, rows, keep)
+    assert kept.num_episodes == 5 and kept.episode_seed.tolist() == [100, 101, 102, 103, 105]
+    calls, steps = merged.episode != 4, merged.step_episode != 4
     assert torch.equal(kept.actions, merged.actions[calls]) and torch.equal(kept.x_t, merged.x_t[steps])
-    assert torch.equal(kept.step_episode, merged.step_episode[steps] - (merged.step_episode[steps] > 3).long())
+    assert torch.equal(kept.step_episode, merged.step_episode[steps] - (merged.step_episode[steps] > 4).long())
     venv.close()
 
 
@@ -140,10 +137,7 @@ def test_same_episodes_as_the_local_collector(synced):
         assert_same_batch(mine, theirs)
     assert theirs.episode_seed.unique().numel() == 2  # one initial state per group of 3
     assert mine.episode_success.any()
-    state, remote_state = local.state_dict(), remote.state_dict()
-    assert state["env_rng"] == remote_state["env_rng"]
-    assert all(torch.equal(a, b) for a, b in zip(state["env_generators"], remote_state["env_generators"]))
-    assert torch.equal(state["generator"], remote_state["generator"])
+    assert torch.equal(local.state_dict()["generator"], remote.state_dict()["generator"])
     assert evaluate_policy(policy, local, 5, seed=3) == evaluate_policy(policy, remote, 5, seed=3)
 
 
@@ -164,7 +158,7 @@ def test_weights_are_pushed_only_when_they_changed(synced):
     assert remote.push(policy) > 0 and remote.pop_metrics()["charts/weight_push_mb"] == 0
 
 
-def test_a_worker_killed_mid_wave_is_restarted_and_its_episodes_dropped(synced):
+def test_a_worker_killed_mid_part_is_restarted_and_its_episodes_dropped(synced):
     local, remote = synced
     policy = goal_seeker(cls=SlowSeeker)
     with torch.no_grad():
@@ -172,22 +166,18 @@ def test_a_worker_killed_mid_wave_is_restarted_and_its_episodes_dropped(synced):
     remote.push(policy)
     pid = remote.worker_pids()[0]
     losses = remote.workers[0].losses
-    threading.Timer(0.4, os.kill, (pid, signal.SIGKILL)).start()  # a wave takes >= 10 calls x 0.1 s
+    state = local.state_dict()
+    threading.Timer(0.4, os.kill, (pid, signal.SIGKILL)).start()  # a part takes >= 10 calls x 0.1 s
     batch = remote.collect(policy, 6, RolloutSpec(0.3))
     metrics = remote.pop_metrics()
-    assert metrics["charts/worker_restarts"] == 1 and metrics["charts/dropped_episodes"] == 3
+    # Episode j of a task goes to worker j mod 2: worker 0 had plan rows 0, 2, 3, 5.
+    assert metrics["charts/worker_restarts"] == 1 and metrics["charts/dropped_episodes"] == 4
     assert remote.workers[0].losses == losses + 1 and remote.worker_pids()[0] != pid
-    # Worker 1's sub-envs (1, 3, 5: tasks 0, 1, 1) came back; its episodes are the local ones.
-    assert batch.num_episodes == 3 and batch.episode_task.tolist() == [0, 1, 1]
     whole = local.collect(policy, 6, RolloutSpec(0.3))
-    assert batch.episode_length.tolist() == whole.episode_length[1::2].tolist()
-    # The restarted worker's sub-envs resume from before the lost wave: its next episodes are
-    # the ones it lost (local sub-envs 0, 2, 4 of `whole`), the other worker's are new.
-    again = remote.collect(policy, 6, RolloutSpec(0.3))
-    assert again.num_episodes == 6
-    first = slice(0, 6)  # the first policy call of each sub-env, in sub-env order
-    torch.testing.assert_close(again.obs["state"][first][0::2], whole.obs["state"][first][0::2])
-    assert not torch.allclose(again.obs["state"][first][1::2], whole.obs["state"][first][1::2])
+    assert batch.episode_seed.tolist() == whole.episode_seed[[1, 4]].tolist()
+    assert batch.episode_length.tolist() == whole.episode_length[[1, 4]].tolist()
+    local.load_state_dict(state)
+    assert remote.collect(policy, 6, RolloutSpec(0.3)).num_episodes == 6  # the restarted worker plays again
 
 
 def test_a_hung_worker_times_out_instead_of_deadlocking(synced):
@@ -205,7 +195,7 @@ def test_a_hung_worker_times_out_instead_of_deadlocking(synced):
     finally:
         remote.cfg = replace(remote.cfg, timeout_s=120)
     metrics = remote.pop_metrics()
-    assert metrics["charts/dropped_episodes"] == 3 and batch.num_episodes == 3
+    assert metrics["charts/dropped_episodes"] == 2 and batch.num_episodes == 4
     assert remote.worker_pids()[1] != pid
     assert remote.collect(policy, 6, RolloutSpec(0.3)).num_episodes == 6
 
@@ -307,8 +297,8 @@ def test_a_cluster_that_cannot_be_joined_gets_a_hint(monkeypatch):
 
 SHUTDOWN_SCRIPT = textwrap.dedent("""
     import json, os, time
-    from stepnft.algos.base import RolloutSpec
     from stepnft.config import EnvConfig, RayConfig
+    from stepnft.rollout.plan import RolloutSpec
     from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
     from stepnft.rollout.ray_collector import RayCollector
 
@@ -375,14 +365,13 @@ def test_a_killed_worker_loses_no_iteration_and_a_killed_driver_resumes(ray_inst
             "--checkpoint-every", "2", "--episodes-per-iteration", "4", "--env.tasks", "reach-v3",
             "--env.envs-per-task", "4", "--env.max-episode-steps", "20", "--eval.episodes", "4", "--eval.every", "0",
             "--algo.minibatch-size", "32", "--ray.workers", "2", "--ray.timeout-s", "120"]
-    play_wave, update, waves, updates = RayCollector.play_wave, StepNFT.update, [], []
+    play, update, plays, updates = RayCollector.play, StepNFT.update, [], []
 
-    def kill_before_the_second_training_wave(self, policy, noise_level, generators, seeds=None, record=None,
-                                             active=None):
-        waves.append(record)
-        if record is not None and sum(r is not None for r in waves) == 2:
+    def kill_before_the_second_training_plan(self, policy, plan, noise_level, record=None, progress=None):
+        plays.append(record)
+        if record is not None and sum(r is not None for r in plays) == 2:
             os.kill(self.worker_pids()[0], signal.SIGKILL)
-        return play_wave(self, policy, noise_level, generators, seeds, record, active)
+        return play(self, policy, plan, noise_level, record, progress)
 
     def crash_on_fourth_update(*a, **kw):
         updates.append(1)
@@ -390,7 +379,7 @@ def test_a_killed_worker_loses_no_iteration_and_a_killed_driver_resumes(ray_inst
             raise Crash
         return update(*a, **kw)
 
-    monkeypatch.setattr(RayCollector, "play_wave", kill_before_the_second_training_wave)
+    monkeypatch.setattr(RayCollector, "play", kill_before_the_second_training_plan)
     monkeypatch.setattr(StepNFT, "update", crash_on_fourth_update)
     with pytest.raises(Crash):
         main(args)
