@@ -1,0 +1,213 @@
+"""The real loop's speed against the simulator alone, on a finished run's own settings.
+
+For each policy of the run (its SFT start ``sft_policy/`` and its trained ``policy/``) and each
+worker count, this plays what the run plays: training iterations (the run's task allocation,
+episodes per iteration, Flow-SDE noise and recorded denoising steps; early termination on) and
+an evaluation (ODE, fixed initial states), through the collector and the run's vector env. Every
+reset (with its seed) and every chunk of actions sent to each sub-env is logged; then exactly that
+simulator work is replayed in as many plain processes as there were workers, each stepping its
+share of the sub-envs (split evenly by env steps) with no policy and no pipes. The ratio of the
+two wall-clocks is the loop's efficiency: 1.0 means the loop costs nothing beyond the simulator.
+
+Prints a table and writes ``OUT/loop_throughput.{json,md,png}`` with the command and commit.
+The run's ``summary.json`` phase times (demonstrations, SFT, rollouts, updates, validation, test
+evaluation) are copied into the table when the run recorded them.
+
+    MUJOCO_GL=egl .venv/bin/python benchmarks/loop_throughput.py --run runs/quickstart-X
+    MUJOCO_GL=egl .venv/bin/python benchmarks/loop_throughput.py --run runs/image-X --out benchmarks/results/loop_throughput_image
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stepnft.algos.base import make_algorithm
+from stepnft.config import load_config
+from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.evaluate import evaluate_policy
+from stepnft.policies.base import load_policy
+from stepnft.rollout.allocation import TaskAllocator
+from stepnft.rollout.collector import Collector
+
+
+def logged(venv) -> list[list[tuple[str, object]]]:
+    """Wrap ``venv.send_ops`` to log every op per sub-env; returns the (live) log."""
+    log: list[list[tuple[str, object]]] = [[] for _ in range(venv.num_envs)]
+    send = venv.send_ops
+
+    def send_ops(ops):
+        for i, op, arg in ops:
+            log[i].append((op, np.array(arg, copy=True) if op == "step" else arg))
+        return send(ops)
+
+    venv.send_ops = send_ops
+    return log
+
+
+def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episodes: int) -> dict:
+    """The loop's wall-clock for ``iterations`` training collections and one evaluation of
+    ``which`` policy with ``workers`` simulator processes; and the ops it sent."""
+    policy = load_policy(run / which)
+    env_cfg = dataclasses.replace(cfg.env, num_workers=workers)
+    venv = make_vec_env(env_cfg, policy.config.n_exec, cfg.seed)
+    policy.processor.bind_instructions(venv.instruction_variants, run / "lang_cache")
+    collector = Collector(venv, seed=cfg.seed)
+    allocator = TaskAllocator(len(venv.tasks), cfg.task_allocation, cfg.allocation_floor)
+    summary = json.loads((run / "summary.json").read_text())
+    start = summary["tasks"]
+    allocator.success[:] = [start[t]["before" if which == "sft_policy" else "after"]["success"] for t in venv.tasks]
+    spec = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator()).rollout
+    try:
+        collector.play(policy, collector.plan(len(venv.tasks), spec), spec.noise_level)  # warm-up: first resets
+        ops = logged(venv)
+        t0 = time.perf_counter()
+        train_steps = 0
+        for _ in range(iterations):
+            batch = collector.collect(policy, cfg.episodes_per_iteration, spec,
+                                      allocator.allocate(cfg.episodes_per_iteration, spec.group_size))
+            allocator.update(batch)
+            train_steps += batch.env_steps
+        t1 = time.perf_counter()
+        train_ops = [list(o) for o in ops]
+        for o in ops:
+            o.clear()
+        result = evaluate_policy(policy, collector, eval_episodes, cfg.eval.seed)
+        t2 = time.perf_counter()
+        eval_ops = [list(o) for o in ops]
+    finally:
+        collector.close()
+    return {"train": {"seconds": t1 - t0, "env_steps": train_steps, "ops": train_ops},
+            "eval": {"seconds": t2 - t1, "env_steps": result["env_steps"], "ops": eval_ops}}
+
+
+def _replay_part(args) -> tuple[float, int]:
+    env_cfg, n_exec, layout, part, barrier = args
+    sim = get_simulator(env_cfg.name)
+    envs = [sim.make_env(layout[i][0], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
+                         terminate_on_success=env_cfg.terminate_on_success, seed=layout[i][1], **env_options(env_cfg))
+            for i, _ in part]
+    barrier.wait()
+    start, steps = time.perf_counter(), 0
+    for env, (_, ops) in zip(envs, part):
+        for op, arg in ops:
+            if op == "reset":
+                env.reset(seed=arg)
+            else:
+                steps += env.step(arg)[4]["steps"]
+    seconds = time.perf_counter() - start
+    for env in envs:
+        env.close()
+    return seconds, steps
+
+
+def replay(cfg, n_exec: int, ops: list[list], processes: int) -> dict:
+    """The same simulator work in ``processes`` plain processes (sub-envs split evenly by steps)."""
+    task_ids = get_simulator(cfg.env.name).vec_env_layout(cfg.env.tasks, cfg.env.envs_per_task)["task_ids"]
+    layout = [(cfg.env.tasks[k], 0) for k in task_ids]  # every reset is seeded: the env's own seed is unused
+    cost = [sum(len(a) if op == "step" else 1 for op, a in o) for o in ops]
+    parts, loads = [[] for _ in range(processes)], [0] * processes
+    for i in sorted(range(len(ops)), key=lambda i: -cost[i]):
+        w = int(np.argmin(loads))
+        parts[w].append((i, ops[i]))
+        loads[w] += cost[i]
+    context = multiprocessing.get_context("forkserver")
+    with context.Manager() as manager:
+        barrier = manager.Barrier(processes)
+        with context.Pool(processes) as pool:
+            results = pool.map(_replay_part, [(cfg.env, n_exec, layout, part, barrier) for part in parts])
+    return {"seconds": max(s for s, _ in results), "env_steps": sum(n for _, n in results)}
+
+
+def commit() -> str:
+    root = Path(__file__).resolve().parents[1]
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "stepnft", "benchmarks"], capture_output=True, text=True,
+                           cwd=root).stdout.strip()
+    return head + ("+uncommitted" if dirty else "")
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", required=True, help="a finished `stepnft train` run folder (its config and policies)")
+    p.add_argument("--policies", nargs="+", default=["sft_policy", "policy"], help="policy folders of the run")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="simulator worker processes (env.num_workers)")
+    p.add_argument("--iterations", type=int, default=2, help="training collections per setting")
+    p.add_argument("--eval-episodes", type=int, default=20, help="evaluation episodes per task per setting")
+    p.add_argument("--out", default="benchmarks/results/loop_throughput")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    run = Path(args.run)
+    cfg = load_config(run / "config.yaml")
+    rows = []
+    for which in args.policies:
+        for workers in args.workers:
+            loop = play(cfg, run, which, workers, args.iterations, args.eval_episodes)
+            n_exec = load_policy(run / which).config.n_exec
+            for part in ("train", "eval"):
+                sim = replay(cfg, n_exec, loop[part]["ops"], max(1, workers))
+                assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
+                row = {"policy": which, "workers": workers, "part": part, "env_steps": loop[part]["env_steps"],
+                       "loop_s": loop[part]["seconds"], "simulator_s": sim["seconds"],
+                       "loop_steps_per_s": loop[part]["env_steps"] / loop[part]["seconds"],
+                       "simulator_steps_per_s": sim["env_steps"] / sim["seconds"]}
+                row["ratio"] = row["simulator_s"] / row["loop_s"]
+                rows.append(row)
+                print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
+                      f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f}", flush=True)
+    summary = json.loads((run / "summary.json").read_text())
+    record = {"command": " ".join([os.path.relpath(sys.executable), *sys.argv]), "commit": commit(), "args": vars(args),
+              "cameras": list(cfg.env.cameras), "rows": rows, "run_time_s": summary.get("time_s"),
+              "run_env_steps": summary.get("env_steps"), "load_average_1min": os.getloadavg()[0],
+              "cores": len(os.sched_getaffinity(0))}
+    write_report(record, Path(args.out))
+    return record
+
+
+def write_report(record: dict, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "loop_throughput.json").write_text(json.dumps(record, indent=2))
+    lines = ["# Loop throughput against the simulator alone", "",
+             f"Command: `{record['command']}` (commit {record['commit']}); cameras: {record['cameras'] or 'none'}; "
+             f"{record['cores']} cores, load average {record['load_average_1min']:.2f} when it ended.", "",
+             "| policy | workers | part | env steps | loop env steps/s | simulator alone env steps/s | ratio |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['policy']} | {r['workers']} | {r['part']} | {r['env_steps']:,} | {r['loop_steps_per_s']:,.0f} | "
+              f"{r['simulator_steps_per_s']:,.0f} | {r['ratio']:.2f} |" for r in record["rows"]]
+    if record.get("run_time_s"):
+        total = sum(record["run_time_s"].values())
+        lines += ["", f"The run's own wall-clock by phase ({total / 60:.1f} min, {record['run_env_steps']:,} RL env steps):",
+                  "", "| phase | seconds | share |", "|---|---|---|"]
+        lines += [f"| {k} | {v:.0f} | {v / total:.0%} |" for k, v in record["run_time_s"].items()]
+    (out / "loop_throughput.md").write_text("\n".join(lines) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    labels = [f"{r['policy']}\n{r['part']}, {r['workers']}w" for r in record["rows"]]
+    ax.bar(range(len(labels)), [r["ratio"] for r in record["rows"]], color="tab:blue")
+    ax.axhline(0.8, color="gray", ls="--", lw=1, label="target 0.8")
+    ax.set_xticks(range(len(labels)), labels, fontsize=7)
+    ax.set_ylabel("loop / simulator alone")
+    ax.set_ylim(0, 1.1)
+    ax.legend(fontsize=8)
+    ax.set_title(f"loop efficiency ({'cameras' if record['cameras'] else 'state'})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "loop_throughput.png", dpi=120)
+    print(f"wrote {out / 'loop_throughput.md'}")
+
+
+if __name__ == "__main__":
+    main()
