@@ -27,6 +27,7 @@ from pathlib import Path
 import yaml
 
 from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, to_dict
+from stepnft.evaluate import format_ci
 from stepnft.runs import read_metrics, save_panels, task_panels
 from stepnft.train import train
 
@@ -82,7 +83,7 @@ def fmt(rates: list[float]) -> str:
 
 def table(runs: list[dict], tasks: list[str]) -> str:
     """Markdown: per task, SFT / final / best over seeds, and each seed's figures with CIs."""
-    cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f}, {r['ci95'][1]:.2f}]"  # noqa: E731
+    cell = lambda r: format_ci((r["success"], *r["ci95"]))  # noqa: E731
     lines = ["| task | SFT | final | best (validation-chosen) | per seed: SFT → final [95 % CI] |", "|---|---|---|---|---|"]
     for task in tasks:
         rates = {w: [r["tasks"][task][w]["success"] for r in runs] for w in ("before", "after", "best")}
@@ -103,7 +104,7 @@ def table(runs: list[dict], tasks: list[str]) -> str:
 def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
     """Markdown: this folder's final success minus each other folder's, seed by seed (same SFT
     start), per task and on average over every (seed, task) pair, with 95 % t-intervals."""
-    from stepnft.compare import format_ci, mean_ci
+    from stepnft.compare import mean_ci
 
     lines = ["| this minus | seeds | " + " | ".join(tasks) + " | average |", "|---" * (len(tasks) + 3) + "|"]
     for other in others:

@@ -90,9 +90,20 @@ def episode_generators(seeds: list[int]) -> list[torch.Generator]:
     return [torch.Generator().manual_seed(s) for s in seeds]
 
 
+def format_ci(stats: tuple[float, float, float], signed: bool = False) -> str:
+    """``mean [lo, hi]`` of a ``(mean, lo, hi)`` triple, two decimals (``–`` without a mean, no
+    interval without bounds): the one way stepnft writes a figure with its 95 % interval.
+    An evaluation result ``r`` gives ``format_ci((r["success"], *r["ci95"]))``."""
+    mean, lo, hi = stats
+    if math.isnan(mean):
+        return "–"
+    fmt = "{:+.2f}" if signed else "{:.2f}"
+    return fmt.format(mean) + ("" if math.isnan(lo) else f" [{fmt.format(lo)}, {fmt.format(hi)}]")
+
+
 def format_table(before: dict | None, after: dict) -> str:
     """A plain-text table: task, success before -> after with 95 % CIs."""
-    cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f},{r['ci95'][1]:.2f}]"  # noqa: E731
+    cell = lambda r: format_ci((r["success"], *r["ci95"]))  # noqa: E731
     if before is None:
         lines = [f"{'task':<18} {'success [95% CI]':>22}"]
         lines += [f"{task:<18} {cell(res):>22}" for task, res in after["tasks"].items()]

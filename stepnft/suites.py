@@ -28,7 +28,7 @@ import numpy as np
 
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.perturbations import OOD_SUITES, SUITES, Perturbations
-from stepnft.evaluate import evaluate_policy, format_table, record_videos
+from stepnft.evaluate import evaluate_policy, format_ci, format_table, record_videos
 from stepnft.policies.base import Policy
 
 SUITE_NAMES = tuple(SUITES)
@@ -130,7 +130,7 @@ def format_suites(results: dict) -> str:
     suites = list(results["suites"])
     ran = [s for s in suites if "tasks" in results["suites"][s]]
     tasks = list(results["suites"][ran[0]]["tasks"]) if ran else []
-    cell = lambda r: f"{r['success']:.2f} [{r['ci95'][0]:.2f},{r['ci95'][1]:.2f}]"  # noqa: E731
+    cell = lambda r: format_ci((r["success"], *r["ci95"]))  # noqa: E731
     lines = [f"{'task':<18}" + "".join(f"{s:>20}" for s in suites)]
     for task in tasks:
         lines.append(f"{task:<18}" + "".join(f"{cell(results['suites'][s]['tasks'][task]) if s in ran else '-':>20}"
@@ -150,7 +150,7 @@ def format_suite(result: dict) -> str:
     """One suite's table (task, success [95 % CI]) and its per-perturbation breakdown."""
     text = format_table(None, result)
     for name, r in result.get("breakdown", {}).items():
-        text += f"\n  {name:<16} {r['success']:.2f} [{r['ci95'][0]:.2f},{r['ci95'][1]:.2f}] ({r['episodes']} episodes)"
+        text += f"\n  {name:<16} {format_ci((r['success'], *r['ci95']))} ({r['episodes']} episodes)"
     return text
 
 

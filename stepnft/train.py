@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 
 from stepnft import distributed
 from stepnft.algos.base import RunDiverged, make_algorithm
-from stepnft.algos.sft import sft_from_demos
+from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
 from stepnft.devices import resolve_device
@@ -95,9 +95,8 @@ class TrainingRun:
         mark_run(run_dir, "train")
         save_config(cfg, run_dir / "config.yaml")
         with clock.timed("sft"):
-            policy = policy or sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps,
-                                              cfg.seed, run_dir / "lang_cache", log, env_cfg=cfg.env,
-                                              device=cfg.device)
+            policy = policy or sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim,
+                                         device=cfg.device, cache_dir=run_dir / "lang_cache", log=log)
         policy.save_pretrained(run_dir / "sft_policy")
         run = cls(cfg, run_dir, policy, collector, tasks)
         run.progress.time_s = clock.time_s
@@ -264,8 +263,8 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         run_dir, sim, tasks, collector = _start_run(cfg, stack, "sft")
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
-        policy = sft_from_demos(cfg.policy, cfg.sft, cfg.demos, sim, tasks, cfg.env.max_episode_steps, cfg.seed,
-                                run_dir / "lang_cache", log, env_cfg=cfg.env, init=cfg.init, device=cfg.device)
+        policy = sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim, init=cfg.init,
+                           device=cfg.device, cache_dir=run_dir / "lang_cache", log=log)
         policy.save_pretrained(run_dir / "policy")
         if cfg.eval.episodes == 0:  # e.g. `stepnft train --init RUN/policy` evaluates it next
             write_atomic(run_dir / "summary.json", json.dumps({"sft": None}, indent=2))

@@ -165,15 +165,3 @@ def test_suites_evaluate_every_final_policy_and_the_sft_start(tmp_path):
     report = (out / "suites.md").read_text()
     assert "| SFT (start) | 1 |" in report and "| stepnft | 1 |" in report and "ood_average" in report
     assert "--suites ind --suite-episodes 128" in report  # the command shown reproduces the table
-
-
-def test_a_relative_out_folder_gives_relative_paths_in_the_saved_configs(tmp_path, monkeypatch):
-    from stepnft.compare import CompareCommand, plan
-
-    base = bandit_base(tmp_path / "base.yaml")
-    monkeypatch.chdir(tmp_path)
-    sft_jobs, run_jobs, out = plan(CompareCommand(config=str(base), algos=["stepnft"], seeds=[0], env_steps=100,
-                                                  out="cmp"))
-    assert str(out) == "cmp"
-    assert sft_jobs[0].config.run_dir == "cmp/sft/seed0" and sft_jobs[0].config.demos.path == "cmp/demos/seed0"
-    assert run_jobs[0].config.init == "cmp/sft/seed0/policy"

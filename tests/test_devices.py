@@ -11,7 +11,7 @@ import torch
 from stepnft.algos.base import make_algorithm
 from stepnft.rollout.plan import RolloutSpec
 from stepnft.algos.ppo import PPOConfig
-from stepnft.algos.sft import SFTConfig, sft_from_demos
+from stepnft.algos.sft import SFTConfig, sft_stage
 from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.batch import Batch
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
@@ -125,8 +125,9 @@ def sft(device: str, root) -> FlowPolicy:
         generate_demos(["bandit"], 200, demos.path, simulator=get_simulator("bandit"), successful_only=False,
                        max_episode_steps=HORIZON, progress=False)
     torch.manual_seed(0)  # the same initial weights on every device
-    return sft_from_demos(POLICY, SFTConfig(steps=100, batch_size=64, lr=1e-3), demos, get_simulator("bandit"),
-                          ["bandit"], HORIZON, seed=0, log=lambda s: None, device=device)
+    env = EnvConfig(name="bandit", tasks=["bandit"], max_episode_steps=HORIZON)
+    return sft_stage(env, demos, POLICY, SFTConfig(steps=100, batch_size=64, lr=1e-3), seed=0, log=lambda s: None,
+                     device=device)
 
 
 def rollout(policy, episodes=64) -> Batch:

@@ -22,7 +22,7 @@ CAMERA = ["--env.cameras", "corner", "--env.image-size", "16", "--env.state-obs"
 def camera_demos(tmp_path_factory):
     try:
         return generate_demos("reach-v3", episodes=1, out_dir=tmp_path_factory.mktemp("demos") / "cam",
-                              progress=False, cameras=["corner"], image_size=16)
+                              progress=False, cameras=["corner"], image_size=16, simulator="metaworld")
     except RenderingError as err:
         pytest.skip(f"no offscreen rendering here (EGL): {err}")
 

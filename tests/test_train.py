@@ -38,7 +38,8 @@ def tiny_train_args(run_dir, demos) -> list[str]:
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
     # Generated here with room to succeed: episodes of the runs are capped much shorter.
-    return generate_demos("reach-v3", episodes=2, out_dir=tmp_path_factory.mktemp("demos"), progress=False)
+    return generate_demos("reach-v3", episodes=2, out_dir=tmp_path_factory.mktemp("demos"), progress=False,
+                          simulator="metaworld")
 
 
 @pytest.fixture(scope="module")

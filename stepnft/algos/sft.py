@@ -1,8 +1,16 @@
 """Few-shot behaviour cloning: the flow-matching loss over demonstration chunks
-(docs/algorithm.md §1), and the SFT stage of a run (demonstrations -> fitted policy)."""
+(docs/algorithm.md §1), and the SFT stage of a run in three steps, which :func:`sft_stage`
+composes from the run's config sections:
+
+    episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator)     # data (stepnft.data.demos)
+    data = sft_chunks(episodes, env_cfg, simulator, horizon)            # chunks at the policy's horizon
+    fit_processor(policy, data, instructions)                           # fit
+    losses = sft_train(policy, data, sft_cfg, generator)                # train
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
@@ -11,7 +19,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from stepnft.data.demos import DemoEpisode, demos_to_chunks, load_or_generate_demos
 from stepnft.devices import to_device
+from stepnft.envs import get_simulator
 from stepnft.losses import flow_matching_loss
 from stepnft.policies.base import Policy, load_policy, make_policy
 from stepnft.policies.vision import random_shift
@@ -93,54 +103,44 @@ def sft_train(
     return losses
 
 
-def sft_from_demos(policy_cfg, sft_cfg: SFTConfig, demos_cfg, simulator, tasks: list[str], max_episode_steps: int,
-                   seed: int, cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
-                   env_cfg=None, init: str | None = None, device: str = "cpu") -> Policy:
-    """The SFT stage of a run: demonstrations (generated into ``demos_cfg.path`` if it holds
-    none) -> chunks -> a new policy with its processor fitted -> :func:`sft_train`. ``env_cfg``
-    (an ``EnvConfig``) gives the cameras to record and the state the policy sees. With ``init``,
-    SFT fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder); its processor
-    keeps its statistics unless it has none. The policy trains, and is returned, on ``device``."""
-    from stepnft.data.demos import demo_cameras, demos_to_chunks, generate_demos, load_demos
+def sft_chunks(episodes: Sequence[DemoEpisode], env_cfg, simulator, horizon: int, only_successful: bool = True
+               ) -> dict:
+    """The SFT data of ``episodes`` for a policy of chunk length ``horizon`` on the env of
+    ``env_cfg`` (an ``EnvConfig``): the part of each state its ``state_obs`` shows, its cameras'
+    images; see ``stepnft.data.demos.demos_to_chunks`` for the keys and shapes."""
+    return demos_to_chunks(episodes, simulator.validate_tasks(env_cfg.tasks), horizon, only_successful=only_successful,
+                           state_fn=lambda states: simulator.policy_state(states, env_cfg.state_obs),
+                           images=bool(env_cfg.cameras))
 
-    path = Path(demos_cfg.path)
-    cameras = list(env_cfg.cameras) if env_cfg is not None else []
-    image_size = env_cfg.image_size if env_cfg is not None else 64
-    state_obs = env_cfg.state_obs if env_cfg is not None else "full"
-    # A simulator's own dataset (e.g. LIBERO's HDF5 files) is read at the env's cameras and size.
-    own_dataset = not (path / "manifest.json").is_file() and simulator.has_dataset(path)
-    if not (path / "manifest.json").is_file() and not own_dataset:
-        count = max(demos_cfg.count(t) for t in tasks)
-        log(f"generating {count} demonstrations per task into {path}")
-        generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
-                       max_episode_steps=max_episode_steps, simulator=simulator, max_attempts=demos_cfg.max_attempts,
-                       successful_only=demos_cfg.successful_only, cameras=cameras, image_size=image_size)
-    if cameras and not own_dataset and demo_cameras(path) != (cameras, image_size):
-        recorded, size = demo_cameras(path)
-        raise ValueError(f"demonstrations in {path} were recorded with cameras {recorded} at {size} px, the env "
-                         f"renders {cameras} at {image_size} px: point --demos.path at a new folder to record them")
-    keep = (lambda e: e.success) if demos_cfg.successful_only else (lambda e: True)  # noqa: E731
-    episodes = [e for e in load_demos(path, simulator, cameras, image_size) if e.task in tasks and keep(e)]
-    per_task = {t: [e for e in episodes if e.task == t][: demos_cfg.count(t)] for t in tasks}
-    short = [t for t, eps in per_task.items() if len(eps) < demos_cfg.count(t)]
-    if short:
-        raise ValueError(f"demonstrations in {path} have too few {'successful ' * demos_cfg.successful_only}episodes "
-                         f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
-                         "larger N, or point --demos.path at a new folder")
-    policy = load_policy(init) if init else make_policy(policy_cfg)
-    data = demos_to_chunks([e for eps in per_task.values() for e in eps], tasks, policy.config.horizon,
-                           only_successful=demos_cfg.successful_only,
-                           state_fn=lambda states: simulator.policy_state(states, state_obs), images=bool(cameras))
-    if init is None or getattr(policy.processor, "needs_fit", False):
+
+def fit_processor(policy: Policy, data: dict, instructions: list[str], cache_dir: str | Path | None = None,
+                  keep_statistics: bool = False) -> None:
+    """Fit ``policy.processor``'s state statistics to ``data["obs"]["state"]`` [N, S] and bind it
+    to the tasks' ``instructions``. With ``keep_statistics`` (a saved policy SFT fine-tunes), a
+    processor that has statistics keeps them."""
+    if not keep_statistics or getattr(policy.processor, "needs_fit", False):
         policy.processor.fit(data["obs"]["state"])
-    policy.processor.bind_instructions([simulator.instruction(t) for t in tasks], cache_dir)
+    policy.processor.bind_instructions(instructions, cache_dir)
+
+
+def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, simulator=None, init: str | None = None,
+              device: str = "cpu", cache_dir: str | Path | None = None, log: Callable[[str], None] = print) -> Policy:
+    """The SFT stage of a run from its ``EnvConfig``, ``DemoConfig``, policy config and
+    :class:`SFTConfig`: demonstrations -> a new policy with its processor fitted -> :func:`sft_train`
+    (minibatches and noise drawn from a generator seeded by ``seed``). With ``init``, SFT
+    fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder). ``simulator``: the
+    env's (default: the registered one). The policy trains, and is returned, on ``device``."""
+    simulator = simulator or get_simulator(env_cfg.name)
+    episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator, log)
+    policy = load_policy(init) if init else make_policy(policy_cfg)
+    data = sft_chunks(episodes, env_cfg, simulator, policy.config.horizon, demos_cfg.successful_only)
+    instructions = [simulator.instruction(t) for t in simulator.validate_tasks(env_cfg.tasks)]
+    fit_processor(policy, data, instructions, cache_dir, keep_statistics=init is not None)
     policy.to(device)
-    gen = torch.Generator().manual_seed(seed)
-    bar = tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0)
-    losses = sft_train(policy, data, sft_cfg, gen,
-                       on_step=lambda s, loss: (bar.update(1), bar.set_postfix(loss=f"{loss:.3f}", refresh=False)))
-    bar.close()
+    with tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0) as bar:
+        losses = sft_train(policy, data, sft_cfg, torch.Generator().manual_seed(seed),
+                           on_step=lambda s, loss: (bar.update(1), bar.set_postfix(loss=f"{loss:.3f}", refresh=False)))
     if losses:
-        log(f"SFT: {len(data['actions'])} chunks from {sum(len(v) for v in per_task.values())} demos, "
+        log(f"SFT: {len(data['actions'])} chunks from {len(episodes)} demos, "
             f"loss {np.mean(losses[:50]):.3f} -> {np.mean(losses[-50:]):.3f}")
     return policy

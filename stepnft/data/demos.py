@@ -18,10 +18,11 @@ On-disk format, version 1 (a public contract; bump "version" when it changes):
         images        uint8   [T+1, V, 3, H, W]   only when generated with cameras: the camera
                                          views of o_0 .. o_T (upright, H = W = image_size)
 
-``generator`` also names the ``simulator`` (``metaworld`` when absent) and its ``state_dim`` and
-``action_dim`` (MetaWorld's 39 and 4 when absent), and with cameras ``cameras`` (names, in view
-order) and ``image_size``. Files without images (and manifests without ``cameras``) are the same
-version-1 files as before images existed: they still load. Observations are always the
+``generator`` also names the ``simulator`` and its ``state_dim`` and ``action_dim``, and with
+cameras ``cameras`` (names, in view order) and ``image_size``. Manifests written before a
+second simulator existed name none of the three: their widths are checked against the
+simulator :func:`load_demos` is given, if any. Files without images (and manifests without
+``cameras``) are the same version-1 files as before images existed: they still load. Observations are always the
 simulator's full state: a policy that sees less (``env.state_obs proprio``) is given its part
 when SFT builds its chunks. Files are written to a temporary name and
 renamed, and the manifest last, so a crash never leaves a half-written file behind a valid
@@ -36,7 +37,6 @@ Seeds. Attempt k of a task starts from `reset(seed=demo_seed(seed, k))`, i.e.
 seeded below 2**32, so demo initial states never coincide with theirs.
 """
 
-import dataclasses
 import json
 import zipfile
 from collections.abc import Callable, Sequence
@@ -48,33 +48,16 @@ import torch
 from tqdm import tqdm
 
 from stepnft.envs import get_simulator
+from stepnft.envs.episodes import DemoEpisode
 from stepnft.runs import write_atomic
+
+__all__ = ["DemoEpisode", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos", "load_demos",
+           "load_or_generate_demos"]
 
 FORMAT = "stepnft-demos"
 VERSION = 1
 DEMO_SEED_OFFSET = 2**32
 MAX_EPISODES_PER_TASK = 2**20
-METAWORLD_DIMS = (39, 4)
-
-
-@dataclasses.dataclass
-class DemoEpisode:
-    """One demonstration; T is its number of actions."""
-
-    task: str
-    instruction: str
-    observations: np.ndarray
-    """float32 [T+1, S]"""
-    actions: np.ndarray
-    """float32 [T, A]"""
-    rewards: np.ndarray
-    """float32 [T]"""
-    successes: np.ndarray
-    """bool [T]"""
-    success: bool
-    seed: int
-    images: np.ndarray | None = None
-    """uint8 [T+1, V, 3, H, W] camera views, when generated with cameras"""
 
 
 def demo_seed(seed: int, episode: int) -> int:
@@ -90,7 +73,8 @@ def generate_demos(
     action_noise: float = 0.0,
     max_episode_steps: int = 200,
     progress: bool = True,
-    simulator="metaworld",
+    *,
+    simulator,
     max_attempts: int | None = None,
     successful_only: bool = True,
     cameras: Sequence[str] = (),
@@ -107,71 +91,81 @@ def generate_demos(
     """
     sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
     tasks = sim.validate_tasks(tasks)
+    max_attempts = 5 * episodes if max_attempts is None else max_attempts
+    _check_generation(episodes, max_attempts, seed, action_noise)
+    out_dir = Path(out_dir)
+    if (out_dir / "manifest.json").is_file():
+        raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
+                         "(--demos.path), or delete that one to regenerate it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    settings = {"episodes_per_task": episodes, "max_attempts": max_attempts, "seed": seed, "action_noise": action_noise,
+                "max_episode_steps": max_episode_steps,
+                **({"cameras": list(cameras), "image_size": image_size} if cameras else {})}
+    entries, discarded = [], {}
+    with tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0) as bar:
+        for task in tasks:
+            kept, discarded[task] = _record_task(sim, task, out_dir, bar, successful_only=successful_only, **settings)
+            entries += kept
+    write_atomic(out_dir / "manifest.json", json.dumps(_manifest(sim, tasks, entries, discarded, settings), indent=1))
+    return out_dir
+
+
+def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise: float) -> None:
     if not 1 <= episodes <= MAX_EPISODES_PER_TASK:
         raise ValueError(f"episodes must be in [1, {MAX_EPISODES_PER_TASK}], got {episodes}")
-    max_attempts = 5 * episodes if max_attempts is None else max_attempts
     if not episodes <= max_attempts <= MAX_EPISODES_PER_TASK:
         raise ValueError(f"max_attempts must be in [episodes, {MAX_EPISODES_PER_TASK}], got {max_attempts}")
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
     if not action_noise >= 0 or not np.isfinite(action_noise):
         raise ValueError(f"action_noise must be a finite number >= 0, got {action_noise}")
-    out_dir = Path(out_dir)
-    if (out_dir / "manifest.json").is_file():
-        raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
-                         "(--demos.path), or delete that one to regenerate it")
-    out_dir.mkdir(parents=True, exist_ok=True)
 
-    entries, discarded = [], {}
-    bar = tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0)
-    for task in tasks:
-        camera_options = {"cameras": list(cameras), "image_size": image_size} if cameras else {}
-        expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
-        env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, **camera_options)
-        # A noise stream per (seed, task), unaffected by which other tasks are generated.
-        noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
-        (out_dir / task).mkdir(exist_ok=True)
-        kept = attempts = 0
-        while kept < episodes:
+
+def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, max_attempts: int, seed: int,
+                 action_noise: float, max_episode_steps: int, successful_only: bool, cameras: Sequence[str] = (),
+                 image_size: int = 64) -> tuple[list[dict], int]:
+    """Expert attempts at ``task`` until ``episodes_per_task`` are kept, each written to
+    ``out_dir/task/``; returns their manifest entries and the number of attempts discarded."""
+    camera_options = {"cameras": list(cameras), "image_size": image_size} if cameras else {}
+    expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
+    env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, **camera_options)
+    # A noise stream per (seed, task), unaffected by which other tasks are generated.
+    noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
+    (out_dir / task).mkdir(exist_ok=True)
+    entries, attempts = [], 0
+    try:
+        while len(entries) < episodes_per_task:
             if attempts == max_attempts:
-                env.close()
-                raise ValueError(f"the {sim.label} expert succeeded on only {kept} of {attempts} attempts at {task} "
-                                 f"(cap {max_attempts}): ask for fewer episodes or raise the attempt cap")
+                raise ValueError(f"the {sim.label} expert succeeded on only {len(entries)} of {attempts} attempts at "
+                                 f"{task} (cap {max_attempts}): ask for fewer episodes or raise the attempt cap")
             episode = _run_expert(env, sim.instruction(task), expert, noise_rng, action_noise,
                                   demo_seed(seed, attempts), task)
             attempts += 1
             if successful_only and not episode.success:
                 continue
-            file = f"{task}/episode_{kept:04d}.npz"
+            file = f"{task}/episode_{len(entries):04d}.npz"
             write_atomic(out_dir / file, _npz_bytes(episode))
             entries.append({"file": file, "task": task, "instruction": episode.instruction, "success": episode.success,
                             "length": len(episode.actions), "seed": episode.seed})
-            kept += 1
             bar.update()
-            bar.set_postfix(task=task, discarded=attempts - kept, refresh=False)
-        discarded[task] = attempts - kept
+            bar.set_postfix(task=task, discarded=attempts - len(entries), refresh=False)
+    finally:
         env.close()
-    bar.close()
+    return entries, attempts - len(entries)
 
+
+def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, int], settings: dict) -> dict:
     try:
         package_version = version(sim.name)
     except PackageNotFoundError:
         package_version = None
-    manifest = {
-        "format": FORMAT,
-        "version": VERSION,
-        "tasks": tasks,
-        "episodes": entries,
-        "generator": {
-            "simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,
-            "episodes_per_task": episodes, "max_attempts": max_attempts, "discarded": discarded,
-            "seed": seed, "action_noise": action_noise, "max_episode_steps": max_episode_steps,
-            "expert": f"{sim.name} scripted expert", "simulator_version": package_version,
-            **({"cameras": list(cameras), "image_size": image_size} if cameras else {}),
-        },
-    }
-    write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1))
-    return out_dir
+    generator = {"simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,
+                 "episodes_per_task": settings["episodes_per_task"], "max_attempts": settings["max_attempts"],
+                 "discarded": discarded, "seed": settings["seed"], "action_noise": settings["action_noise"],
+                 "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
+                 "simulator_version": package_version,
+                 **{k: settings[k] for k in ("cameras", "image_size") if k in settings}}
+    return {"format": FORMAT, "version": VERSION, "tasks": tasks, "episodes": entries, "generator": generator}
 
 
 def _npz_bytes(episode: DemoEpisode) -> bytes:
@@ -237,7 +231,9 @@ def load_demos(path: str | Path, simulator=None, cameras: Sequence[str] = (), im
         if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
             raise ValueError(f"expected format {FORMAT!r} version {VERSION}")
         generator = manifest.get("generator", {})
-        dims = (generator.get("state_dim", METAWORLD_DIMS[0]), generator.get("action_dim", METAWORLD_DIMS[1]))
+        # An early manifest records no widths: the given simulator's, else any.
+        dims = (generator.get("state_dim", getattr(simulator, "state_dim", None)),
+                generator.get("action_dim", getattr(simulator, "action_dim", None)))
         views = (len(generator["cameras"]), generator["image_size"]) if generator.get("cameras") else None
         return [_load_episode(path, entry, dims, views) for entry in manifest["episodes"]]
     except FileNotFoundError as e:
@@ -251,6 +247,39 @@ def load_demos(path: str | Path, simulator=None, cameras: Sequence[str] = (), im
         ) from None
 
 
+def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], None] = print) -> list[DemoEpisode]:
+    """The demonstrations SFT learns from, for a ``DemoConfig`` and an ``EnvConfig``: the first
+    ``demos_cfg.count(task)`` (successful, with ``demos_cfg.successful_only``) episodes of every
+    task of ``env_cfg``, grouped by task in its order. They come from ``demos_cfg.path``: a
+    stepnft demonstrations folder (generated there first if the folder holds none, at the env's
+    cameras and image size) or a dataset in the simulator's own format."""
+    path = Path(demos_cfg.path)
+    tasks = simulator.validate_tasks(env_cfg.tasks)
+    cameras, image_size = list(env_cfg.cameras), env_cfg.image_size
+    has_manifest = (path / "manifest.json").is_file()
+    own_dataset = not has_manifest and simulator.has_dataset(path)  # read at the env's cameras and size
+    if not has_manifest and not own_dataset:
+        count = max(demos_cfg.count(t) for t in tasks)
+        log(f"generating {count} demonstrations per task into {path}")
+        generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
+                       max_episode_steps=env_cfg.max_episode_steps, simulator=simulator,
+                       max_attempts=demos_cfg.max_attempts, successful_only=demos_cfg.successful_only,
+                       cameras=cameras, image_size=image_size)
+    if cameras and not own_dataset and demo_cameras(path) != (cameras, image_size):
+        recorded, size = demo_cameras(path)
+        raise ValueError(f"demonstrations in {path} were recorded with cameras {recorded} at {size} px, the env "
+                         f"renders {cameras} at {image_size} px: point --demos.path at a new folder to record them")
+    episodes = [e for e in load_demos(path, simulator, cameras, image_size)
+                if e.task in tasks and (e.success or not demos_cfg.successful_only)]
+    per_task = {t: [e for e in episodes if e.task == t][: demos_cfg.count(t)] for t in tasks}
+    short = [t for t, kept in per_task.items() if len(kept) < demos_cfg.count(t)]
+    if short:
+        raise ValueError(f"demonstrations in {path} have too few {'successful ' * demos_cfg.successful_only}episodes "
+                         f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
+                         "larger N, or point --demos.path at a new folder")
+    return [e for kept in per_task.values() for e in kept]
+
+
 def demo_cameras(path: str | Path) -> tuple[list[str], int | None]:
     """The cameras (names, in view order) and image size the demonstrations at ``path`` were
     recorded with (``[], None`` without images)."""
@@ -258,7 +287,8 @@ def demo_cameras(path: str | Path) -> tuple[list[str], int | None]:
     return list(generator.get("cameras", [])), generator.get("image_size")
 
 
-def _load_episode(root: Path, entry: dict, dims: tuple[int, int], views: tuple[int, int] | None) -> DemoEpisode:
+def _load_episode(root: Path, entry: dict, dims: tuple[int | None, int | None], views: tuple[int, int] | None
+                  ) -> DemoEpisode:
     file = root / entry["file"]
     if not file.is_file():
         raise FileNotFoundError(f"missing {entry['file']}")
@@ -275,9 +305,10 @@ def _load_episode(root: Path, entry: dict, dims: tuple[int, int], views: tuple[i
     if views:
         expected["images"] = (length + 1, views[0], 3, views[1], views[1])
     for key, shape in expected.items():
-        if arrays[key].shape != shape:
+        found = arrays[key].shape
+        if len(found) != len(shape) or any(want is not None and want != n for want, n in zip(shape, found)):
             raise ValueError(
-                f"{entry['file']}: {key} has shape {arrays[key].shape}, expected {shape}"
+                f"{entry['file']}: {key} has shape {found}, expected {shape}"
             )
     return DemoEpisode(
         task=entry["task"],

@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
 
-from stepnft.envs.base import Expert, Simulator
+from stepnft.envs.base import Expert, Simulator, checked_chunk
 
 CONTEXT_DIM = 2
 ACTION_DIM = 2
@@ -58,11 +58,7 @@ class BanditChunkEnv(gym.Env):
         return {"state": self._context.copy()}, self._info(0)
 
     def step(self, chunk: np.ndarray):
-        if self._context is None:
-            raise RuntimeError("call reset() before step()")
-        chunk = np.asarray(chunk, dtype=np.float64)
-        if chunk.shape != self.action_space.shape:
-            raise ValueError(f"expected an action chunk of shape {self.action_space.shape}, got {chunk.shape}")
+        chunk = checked_chunk(chunk, self.action_space, self._context is not None)
         obs = {"state": self._context.copy()}
         if self._done:
             return obs, 0.0, self._success, not self._success, self._info(0)

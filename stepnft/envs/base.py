@@ -272,3 +272,14 @@ class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
         workers = min(num_workers, len(env_fns))
         super().__init__(env_fns, num_workers=workers, context=context,
                          assignment=lane_workers(layout["task_ids"], workers), **layout)
+
+
+def checked_chunk(chunk, action_space: gym.spaces.Box, was_reset: bool) -> np.ndarray:
+    """The ``step`` argument of a chunk env as float64 ``[n_exec, A]``, after the contract's
+    checks: a reset came first (``was_reset``), and the chunk has ``action_space``'s shape."""
+    if not was_reset:
+        raise RuntimeError("call reset() before step()")
+    chunk = np.asarray(chunk, dtype=np.float64)
+    if chunk.shape != action_space.shape:
+        raise ValueError(f"expected an action chunk of shape {action_space.shape}, got {chunk.shape}")
+    return chunk

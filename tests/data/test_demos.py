@@ -1,9 +1,14 @@
+import ast
+import dataclasses
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from stepnft.config import DemoConfig, EnvConfig
 from stepnft.data.demos import (
     DEMO_SEED_OFFSET,
     DemoEpisode,
@@ -11,14 +16,16 @@ from stepnft.data.demos import (
     demos_to_chunks,
     generate_demos,
     load_demos,
+    load_or_generate_demos,
 )
+from stepnft.envs import get_simulator
 from stepnft.envs.metaworld import MetaWorldChunkEnv, instruction_for
 
 
 @pytest.fixture(scope="module")
 def reach_demos(tmp_path_factory):
     out = tmp_path_factory.mktemp("demos") / "reach"
-    return generate_demos("reach-v3", episodes=2, out_dir=out, seed=0, progress=False)
+    return generate_demos("reach-v3", episodes=2, out_dir=out, seed=0, progress=False, simulator="metaworld")
 
 
 def test_demos_round_trip_through_disk(reach_demos):
@@ -70,7 +77,7 @@ def test_noisy_generation_is_reproducible_from_its_seed(tmp_path):
     def first_actions(seed, name):
         out = generate_demos(
             "reach-v3", 1, tmp_path / name, seed=seed, action_noise=0.3, max_episode_steps=20,
-            progress=False, successful_only=False,
+            progress=False, successful_only=False, simulator="metaworld",
         )
         return load_demos(out)[0].actions
 
@@ -85,7 +92,7 @@ def test_a_missing_expert_draws_more_states_until_n_successes(tmp_path):
     """Heavy action noise makes the expert miss: generation keeps drawing initial states,
     discards the failures, counts them, and gives up at the attempt cap."""
     out = generate_demos("reach-v3", 2, tmp_path / "noisy", action_noise=1.0, max_episode_steps=60, progress=False,
-                         max_attempts=100)
+                         max_attempts=100, simulator="metaworld")
     manifest = json.loads((out / "manifest.json").read_text())
     episodes = load_demos(out)
     assert len(episodes) == 2 and all(e.success for e in episodes)
@@ -97,7 +104,7 @@ def test_a_missing_expert_draws_more_states_until_n_successes(tmp_path):
 
     with pytest.raises(ValueError, match=r"succeeded on only \d of 3 attempts at reach-v3 \(cap 3\)"):
         generate_demos("reach-v3", 3, tmp_path / "capped", action_noise=3.0, max_episode_steps=30, progress=False,
-                       max_attempts=3)
+                       max_attempts=3, simulator="metaworld")
 
 
 def make_episode(task, actions, success=True):
@@ -191,7 +198,7 @@ def test_demos_with_cameras_store_images_and_give_image_chunks(tmp_path, reach_d
 
     try:
         path = generate_demos("reach-v3", episodes=1, out_dir=tmp_path / "cam", progress=False, cameras=["corner"],
-                              image_size=16)
+                              image_size=16, simulator="metaworld")
     except RenderingError as err:
         pytest.skip(f"no offscreen rendering here (EGL): {err}")
     manifest = json.loads((path / "manifest.json").read_text())
@@ -234,3 +241,69 @@ def test_an_expert_that_edits_its_observation_does_not_change_the_recorded_state
     for episode in load_demos(path):
         obs, _ = BanditChunkEnv(n_exec=1).reset(seed=episode.seed)
         np.testing.assert_array_equal(episode.observations, np.stack([obs["state"]] * len(episode.observations)))
+
+
+def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path):
+    sim, lines = get_simulator("bandit"), []
+    env = EnvConfig(name="bandit", tasks=["bandit"], max_episode_steps=2)
+    demos = DemoConfig(path=str(tmp_path / "demos"), episodes=3, successful_only=False, seed=4)
+    first = load_or_generate_demos(demos, env, sim, lines.append)
+    assert lines == [f"generating 3 demonstrations per task into {tmp_path / 'demos'}"]
+    assert [e.seed for e in first] == [demo_seed(4, k) for k in range(3)]
+    fewer = load_or_generate_demos(dataclasses.replace(demos, episodes=2), env, sim, lines.append)
+    assert len(lines) == 1 and [e.seed for e in fewer] == [e.seed for e in first[:2]]  # read, not generated again
+    with pytest.raises(ValueError, match=r"too few episodes of \['bandit'\].*--demos.episodes N"):
+        load_or_generate_demos(dataclasses.replace(demos, episodes=4), env, sim, lines.append)
+    with pytest.raises(ValueError, match="too few successful episodes"):  # the expert misses most of them
+        load_or_generate_demos(dataclasses.replace(demos, successful_only=True), env, sim, lines.append)
+
+
+def test_demonstrations_without_the_envs_cameras_are_refused(reach_demos):
+    env = EnvConfig(tasks=["reach-v3"], cameras=["corner"])
+    with pytest.raises(ValueError, match=r"recorded with cameras \[\] at None px, the env renders \['corner'\]"):
+        load_or_generate_demos(DemoConfig(path=str(reach_demos)), env, get_simulator("metaworld"))
+
+
+def test_an_early_manifest_without_simulator_or_widths_still_loads(tmp_path, reach_demos):
+    early = tmp_path / "early"
+    shutil.copytree(reach_demos, early)
+    manifest = json.loads((early / "manifest.json").read_text())
+    for key in ("simulator", "state_dim", "action_dim"):
+        del manifest["generator"][key]
+    (early / "manifest.json").write_text(json.dumps(manifest))
+    assert [e.observations.shape[1] for e in load_demos(early)] == [39, 39]
+    assert len(load_demos(early, get_simulator("metaworld"))) == 2
+    with pytest.raises(ValueError, match=r"observations has shape \(\d+, 39\), expected \(\d+, 2\)"):
+        load_demos(early, get_simulator("bandit"))  # widths checked against the simulator given
+
+
+def test_demonstrations_name_their_simulator():
+    with pytest.raises(TypeError, match="simulator"):
+        generate_demos("reach-v3", 1, "unused", progress=False)
+
+
+def imports(folder: Path) -> dict[str, set[str]]:
+    """Per module file under ``folder``: the modules it imports."""
+    found = {}
+    for path in folder.rglob("*.py"):
+        names = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {alias.name for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+        found[str(path)] = names
+    return found
+
+
+def test_envs_import_nothing_of_data_and_data_nothing_of_a_simulator():
+    """The layers: envs -> data. The demonstration record is the envs layer's
+    (``stepnft.data.demos.DemoEpisode`` is it)."""
+    package = Path(__file__).resolve().parents[2] / "stepnft"
+    for path, names in imports(package / "envs").items():
+        assert not [n for n in names if n.startswith("stepnft.data")], path
+    for path, names in imports(package / "data").items():
+        assert not [n for n in names if n.startswith(("stepnft.envs.", "metaworld", "libero"))
+                    and n != "stepnft.envs.episodes"], path
+    from stepnft.envs.episodes import DemoEpisode as record
+    assert DemoEpisode is record

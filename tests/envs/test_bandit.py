@@ -1,9 +1,11 @@
 """The toy bandit behind the simulator interface (used by the fast end-to-end tests)."""
 
 import numpy as np
+import pytest
 
 from stepnft.envs import get_simulator
 from stepnft.envs.bandit import HORIZON, RADIUS, target
+from stepnft.envs.base import checked_chunk
 
 
 def test_an_episode_succeeds_only_if_every_action_is_on_target():
@@ -31,3 +33,14 @@ def test_seeded_contexts_and_a_biased_expert():
     obs = {"state": np.zeros(2, np.float32)}
     actions = np.stack([expert.act(obs) for _ in range(400)])
     assert 0.05 < np.linalg.norm(actions.mean(0) - target(obs["state"])) < 0.15  # biased, not useless
+
+
+def test_step_checks_the_chunk_as_every_chunk_env_does():
+    env = get_simulator("bandit").make_env("bandit", n_exec=HORIZON)
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros((HORIZON, 2), np.float32))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 2\), got \(3, 2\)"):
+        env.step(np.zeros((3, 2), np.float32))
+    chunk = checked_chunk([[0.5, 0], [0, 0.25]], env.action_space, was_reset=True)
+    assert chunk.dtype == np.float64 and chunk.shape == (2, 2)

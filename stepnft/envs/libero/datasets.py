@@ -1,6 +1,6 @@
 """LIBERO demonstrations from disk: LIBERO's published HDF5 files and LeRobot-format datasets.
 
-Both become :class:`stepnft.data.demos.DemoEpisode` objects for the SFT path (``demos_to_chunks``)
+Both become :class:`stepnft.envs.episodes.DemoEpisode` objects for the SFT path (``demos_to_chunks``)
 with the env's ``state`` (8-d: end-effector position, axis-angle orientation, gripper finger
 positions), 7-d actions and the task's instruction as the simulator defines it; with
 ``cameras`` (``agentview``, ``robot0_eye_in_hand``) also their frames as the env's ``image``,
@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stepnft.data.demos import DemoEpisode
+from stepnft.envs.episodes import DemoEpisode
 from stepnft.envs.libero.suites import all_tasks
 
 HDF5_SUFFIXES = (".hdf5", ".h5")

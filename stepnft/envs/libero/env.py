@@ -38,7 +38,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
 
-from stepnft.envs.base import RenderingError
+from stepnft.envs.base import RenderingError, checked_chunk
 from stepnft.envs.libero.suites import all_tasks, initial_states
 
 STATE_DIM = 8
@@ -152,11 +152,7 @@ class LiberoChunkEnv(gym.Env):
 
     def step(self, chunk: np.ndarray):
         """Runs the rows of ``chunk`` [n_exec, 7] in order; see the class doc for the returns."""
-        if self._obs is None:
-            raise RuntimeError("call reset() before step()")
-        chunk = np.asarray(chunk, dtype=np.float64)
-        if chunk.shape != self.action_space.shape:
-            raise ValueError(f"expected an action chunk of shape {self.action_space.shape}, got {chunk.shape}")
+        chunk = checked_chunk(chunk, self.action_space, self._obs is not None)
         if self._terminated or self._truncated:
             return self._copy_obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
         reward_sum, steps = 0.0, 0

@@ -34,6 +34,7 @@ from gymnasium.utils import seeding
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
+from stepnft.envs.base import checked_chunk
 from stepnft.envs.metaworld.camera import CameraRenderer
 from stepnft.envs.metaworld.instructions import instruction_for, task_instruction_variants, unknown_task_error
 from stepnft.envs.metaworld.perturb import ModelPerturber
@@ -190,13 +191,7 @@ class MetaWorldChunkEnv(gym.Env):
 
     def step(self, chunk: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Runs the rows of `chunk` [n_exec, 4] in order; see the class doc for the returns."""
-        if self._state is None:
-            raise RuntimeError("call reset() before step()")
-        chunk = np.asarray(chunk, dtype=np.float64)
-        if chunk.shape != self.action_space.shape:
-            raise ValueError(
-                f"expected an action chunk of shape {self.action_space.shape}, got {chunk.shape}"
-            )
+        chunk = checked_chunk(chunk, self.action_space, self._state is not None)
         if self._terminated or self._truncated:
             return self._obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
 

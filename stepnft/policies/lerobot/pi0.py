@@ -54,14 +54,20 @@ class PiPrefix:
     state: Tensor | None = None
 
 
+def lerobot_entry_points(model: str, policy_class: str) -> tuple[staticmethod, staticmethod]:
+    """``(lerobot_class, make_pipelines)`` of LeRobot's ``lerobot.policies.<model>`` package
+    (``pi0``, ``pi05``: the same layout), imported on use."""
+    package = f"lerobot.policies.{model}"
+    return (staticmethod(lazy(f"{package}.modeling_{model}:{policy_class}")),
+            staticmethod(lazy(f"{package}.processor_{model}:make_{model}_pre_post_processors")))
+
+
 class PI0Adapter(LeRobotFlowPolicy):
     """LeRobot's π0 with stepnft owning the denoising loop."""
 
-    type = "pi0"
-    label = "π0"
+    type, label = "pi0", "π0"
     state_in_suffix = True
-    lerobot_class = staticmethod(lazy("lerobot.policies.pi0.modeling_pi0:PI0Policy"))
-    make_pipelines = staticmethod(lazy("lerobot.policies.pi0.processor_pi0:make_pi0_pre_post_processors"))
+    lerobot_class, make_pipelines = lerobot_entry_points("pi0", "PI0Policy")
 
     @classmethod
     def build(cls, settings, lerobot_cfg, lerobot_dir, vlm, device="cpu"):
@@ -118,8 +124,6 @@ class PI0Adapter(LeRobotFlowPolicy):
 class PI05Adapter(PI0Adapter):
     """LeRobot's π0.5 (the state is part of the instruction tokens, not the suffix)."""
 
-    type = "pi05"
-    label = "π0.5"
+    type, label = "pi05", "π0.5"
     state_in_suffix = False
-    lerobot_class = staticmethod(lazy("lerobot.policies.pi05.modeling_pi05:PI05Policy"))
-    make_pipelines = staticmethod(lazy("lerobot.policies.pi05.processor_pi05:make_pi05_pre_post_processors"))
+    lerobot_class, make_pipelines = lerobot_entry_points("pi05", "PI05Policy")

@@ -1,0 +1,77 @@
+"""``stepnft compare``'s flags (:class:`CompareCommand`), its help, and the command line that
+reproduces a comparison (quoted in its reports)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from stepnft.algos.variants import VARIANTS, describe_variants
+from stepnft.names import split_names
+
+
+@dataclass
+class CompareCommand:
+    """Compare RL fine-tuning algorithms and ablations from the same SFT start per seed, on one
+    env-step budget: success per task with 95 % CIs, paired differences to the reference, env
+    steps, wall-clock and learner speed (OUT/comparison.md, .csv, .png)."""
+
+    config: str = "configs/quickstart.yaml"
+    """Base run config (YAML): tasks, envs, demonstrations, policy, SFT, evaluation and the
+    shared algorithm settings; each variant changes only its algo.* fields."""
+    algos: list[str] = field(default_factory=lambda: ["stepnft", "ppo", "grpo"])
+    """Variants to compare (space- or comma-separated), from the list above."""
+    seeds: list[int] = field(default_factory=lambda: [0])
+    """One SFT policy per seed (demonstrations and initial states seeded by it); every variant
+    runs once per seed from it."""
+    tasks: list[str] | None = None
+    """Sets the base config's env.tasks (space- or comma-separated; None: keep them)."""
+    env_steps: int | None = None
+    """Sets the base config's env_step_budget: the RL env-step budget of every run (None: keep it)."""
+    jobs: int = 0
+    """Runs at once, one subprocess each (0: one per CPU core)."""
+    out: str = "runs/compare"
+    """Comparison folder; rerun the same command on it to resume."""
+    reference: str = "stepnft"
+    """Variant the paired differences are taken against (if compared; else the first)."""
+    eval_episodes: int | None = None
+    """Sets the base config's eval.episodes: episodes per task before and after RL (None: keep it)."""
+    suites: list[str] = field(default_factory=list)
+    """Also evaluate every final policy and every SFT start on these suites (ind, vision,
+    semantic, execution; space- or comma-separated): the table of IND / OOD success
+    (OUT/suites.md). Empty: no suite evaluation."""
+    suite_episodes: int = 50
+    """Episodes per task and suite for --suites."""
+
+    def __post_init__(self) -> None:
+        # --tasks, --env-steps and --eval-episodes are checked by the config sections they set
+        # (stepnft.compare.plan.comparison_config); the rest is the comparison's own.
+        self.algos = list(dict.fromkeys(split_names(self.algos)))
+        self.tasks = split_names(self.tasks) or None
+        self.suites = split_names(self.suites)
+        unknown = [a for a in self.algos if a not in VARIANTS]
+        if not self.algos or unknown:
+            raise ValueError(f"--algos {','.join(unknown) or '(none)'}: choose from {', '.join(VARIANTS)}")
+        if not self.seeds or any(s < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"--seeds must be distinct integers >= 0, got {self.seeds}")
+        if self.jobs < 0:
+            raise ValueError(f"--jobs must be >= 0, got {self.jobs}")
+        if self.suites:
+            from stepnft.suites import check_suites
+
+            check_suites(self.suites)
+        if self.suite_episodes < 1:
+            raise ValueError(f"--suite-episodes must be >= 1, got {self.suite_episodes}")
+
+
+def help_text() -> str:
+    return f"{' '.join((CompareCommand.__doc__ or '').split())}\n\nvariants (--algos):\n{describe_variants()}\n"
+
+
+def command_line(cmd: CompareCommand) -> str:
+    """The ``stepnft compare`` command that reruns (resumes) ``cmd``."""
+    tasks = f" --tasks {' '.join(cmd.tasks)}" if cmd.tasks else ""
+    steps = f" --env-steps {cmd.env_steps}" if cmd.env_steps is not None else ""
+    evals = f" --eval-episodes {cmd.eval_episodes}" if cmd.eval_episodes is not None else ""
+    suites = f" --suites {','.join(cmd.suites)} --suite-episodes {cmd.suite_episodes}" if cmd.suites else ""
+    return (f"stepnft compare --config {cmd.config} --algos {','.join(cmd.algos)} "
+            f"--seeds {' '.join(map(str, cmd.seeds))}{tasks}{steps}{evals}{suites} --out {cmd.out}")

@@ -1,0 +1,136 @@
+"""A comparison's report, from whatever has finished: ``comparison.md`` (success per task with
+95 % CIs, paired differences, crashed runs), ``comparison.csv``, ``comparison.png`` (success
+against env steps) and, with ``--suites``, ``suites.md``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+from stepnft.compare.command import CompareCommand, command_line
+from stepnft.compare.plan import SFT
+from stepnft.compare.stats import summarise, summarise_suites
+from stepnft.evaluate import format_ci
+from stepnft.runs import write_atomic
+from stepnft.suites import SUITE_NAMES
+
+
+def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
+    """``comparison.md``, ``comparison.csv`` and ``comparison.png`` (and ``suites.md``); returns
+    :func:`~stepnft.compare.stats.summarise`'s summary."""
+    summary = summarise(cmd, out, status)
+    settings = json.loads((out / "compare.json").read_text())
+    write_atomic(out / "comparison.md", comparison_markdown(cmd, summary, settings, status))
+    write_atomic(out / "comparison.csv", comparison_csv(summary))
+    plot_comparison(summary, settings["env_step_budget"], out / "comparison.png")
+    if cmd.suites:
+        write_suites_report(cmd, out, summary["reference"])
+    return summary
+
+
+def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, status: dict) -> str:
+    """The table of every row, the paired differences per task, the runs that crashed."""
+    columns, ref, rows = summary["columns"], summary["reference"], summary["rows"]
+    lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "",
+             f"RL budget {settings['env_step_budget']:,} env steps per run; seeds {', '.join(map(str, cmd.seeds))}; "
+             f"ODE evaluation on {settings['eval']['episodes']} fixed initial states per task. Success: mean over "
+             "seeds [95 % t-interval over seeds]. Δ: paired difference to "
+             f"`{ref}` from the same SFT policy per seed, on average over every (seed, task) pair [95 % t-interval].",
+             "", "| algorithm | runs | " + " | ".join(columns) + f" | Δ vs {ref} | env steps | wall-clock (min) | "
+             "learner samples/s |", "|---" * (len(columns) + 6) + "|"]
+    for name, row in rows.items():
+        runs = f"{row['finished']}/{row['runs']}" + (f" ({len(row['crashed'])} crashed)" if row["crashed"] else "")
+        label = "SFT (start)" if name == SFT else name
+        delta = format_ci(row["diff"]["average"], signed=True) if row["paired_seeds"] else "–"
+        extra = "– | – | –" if name == SFT else (
+            f"{row['env_steps']:,.0f} | {row['wall_clock_s'] / 60:.1f} | {row['samples_per_s']:,.0f}"
+            if row["finished"] else "– | – | –")
+        lines.append(f"| {label} | {runs} | " + " | ".join(format_ci(row["success"][c]) for c in columns)
+                     + f" | {delta} | {extra} |")
+    others = [n for n in rows if n not in (SFT, ref) and rows[n]["paired_seeds"]]
+    if others:
+        lines += ["", f"Paired differences to `{ref}` per task (95 % t-interval over seeds):", "",
+                  "| algorithm | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+        lines += [f"| {n} | " + " | ".join(format_ci(rows[n]["diff"][c], signed=True) for c in columns) + " |"
+                  for n in others]
+    missing = [(n, status.get(n, {})) for row in rows.values() for n in row["crashed"]]
+    if missing:
+        lines += ["", "Runs that crashed (rerun the same command to retry them):", ""]
+        lines += [f"- `{n}`: exit code {s.get('rc')}, log `{s.get('log')}`" for n, s in missing]
+    lines += ["", "Learner samples/s: recorded denoising transitions per second of update time. Wall-clock: the "
+              "run's own time (runs shared the machine with the other jobs).", "",
+              "![success against env steps](comparison.png)", ""]
+    return "\n".join(lines)
+
+
+def comparison_csv(summary: dict) -> str:
+    """One line per row and column (task or average): success and paired difference with their
+    intervals, run counts, means of env steps, wall-clock and learner speed."""
+    ref, rows = summary["reference"], summary["rows"]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["algorithm", "task", "runs", "finished", "crashed", "success_mean", "success_ci_lo",
+                     "success_ci_hi", f"diff_vs_{ref}_mean", "diff_ci_lo", "diff_ci_hi", "paired_seeds",
+                     "env_steps_mean", "wall_clock_s_mean", "learner_samples_per_s"])
+    for name, row in rows.items():
+        for c in summary["columns"]:
+            diff = row["diff"][c] if row["paired_seeds"] else (math.nan,) * 3
+            numbers = [*row["success"][c], *diff, row["paired_seeds"], row["env_steps"], row["wall_clock_s"],
+                       row["samples_per_s"]]
+            writer.writerow([name, c, row["runs"], row["finished"], len(row["crashed"]),
+                             *("" if isinstance(x, float) and math.isnan(x) else round(x, 4) for x in numbers)])
+    return buffer.getvalue()
+
+
+def write_suites_report(cmd: CompareCommand, out: Path, reference: str) -> dict:
+    """``suites.md``: success per suite and the OOD average (mean [95 % t-interval] over seeds)
+    per algorithm, and the paired OOD difference to the reference (the paper's table shape);
+    returns :func:`~stepnft.compare.stats.summarise_suites`'s rows."""
+    rows = summarise_suites(cmd, out, reference)
+    columns = [*SUITE_NAMES, "ood_average"]
+    lines = [f"# Suites: {', '.join(cmd.suites)}", "", f"    {command_line(cmd)}", "",
+             f"ODE evaluation of each final policy (and each SFT start), {cmd.suite_episodes} episodes per task and "
+             "suite; mean over seeds [95 % t-interval]. OOD average: the mean of the vision, semantic and execution "
+             f"suites that apply. Δ OOD: paired difference to `{reference}`.", "",
+             "| algorithm | seeds | " + " | ".join(columns) + f" | Δ OOD vs {reference} |", "|---" * (len(columns) + 3) + "|"]
+    for name, row in rows.items():
+        cells = [format_ci(row["success"][c]) for c in columns]
+        delta = "–" if row["ood_diff"] is None else format_ci(row["ood_diff"], signed=True)
+        lines.append(f"| {'SFT (start)' if name == SFT else name} | {row['seeds']} | " + " | ".join(cells)
+                     + f" | {delta} |")
+    write_atomic(out / "suites.md", "\n".join(lines) + "\n")
+    return rows
+
+
+def plot_comparison(summary: dict, budget: int, path: Path) -> None:
+    """Average ODE success against env steps: per algorithm the mean over seeds, band min-max."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    grid = np.linspace(0, budget, 101)
+    for name, row in summary["rows"].items():
+        curves = [c for c in row["curves"].values() if c]
+        if name == SFT or not curves:
+            continue
+        # Each run holds its last evaluation to the budget (it may stop a little past or short of it).
+        ys = np.stack([np.interp(grid, *zip(*c)) for c in curves])
+        line, = ax.plot(grid, ys.mean(axis=0), label=f"{name} ({len(curves)} seeds)")
+        if len(curves) > 1:
+            ax.fill_between(grid, ys.min(axis=0), ys.max(axis=0), color=line.get_color(), alpha=0.15)
+    ax.set_xlabel("RL env steps")
+    ax.set_ylabel("success rate (ODE evaluation, task average)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    if ax.lines:
+        ax.legend(loc="lower right", fontsize="small")
+    ax.set_title("stepnft compare: mean over seeds, band min-max")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,85 @@
+"""What a comparison runs: the command's flags (those quoted in result folders keep working),
+its overrides applied through the run config's own fields and checks, the jobs."""
+
+import dataclasses
+import shlex
+from pathlib import Path
+
+import pytest
+
+from stepnft.cli import _parse
+from stepnft.compare import CompareCommand, command_line, comparison_config, plan
+from stepnft.demo_bandit import bandit_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def quoted_commands() -> list[str]:
+    """The one-line ``stepnft compare`` commands of the comparisons in benchmarks/results."""
+    lines = [line.strip() for path in sorted((ROOT / "benchmarks" / "results").glob("compare*/*.md"))
+             for line in path.read_text().splitlines()]
+    return sorted({line for line in lines if line.startswith("stepnft compare --") and not line.endswith("\\")})
+
+
+def test_result_folders_quote_commands():
+    assert len(quoted_commands()) >= 3  # else the next test checks nothing
+
+
+EVERY_FLAG = ("stepnft compare --config c.yaml --algos stepnft,ppo --seeds 0 1 --tasks reach-v3 push-v3 --env-steps 9 "
+              "--eval-episodes 3 --suites ind,vision --suite-episodes 5 --jobs 2 --out o")
+
+
+@pytest.mark.parametrize("line", [*quoted_commands(), EVERY_FLAG])
+def test_the_commands_quoted_in_result_folders_still_parse_to_themselves(line):
+    """A folder's report shows the command that resumes it: --env-steps, --eval-episodes,
+    --tasks, --suites, --suite-episodes, --jobs and --out must keep their meaning."""
+    cmd = _parse(CompareCommand, shlex.split(line)[2:], CompareCommand(), "stepnft compare")
+    jobs = f" --jobs {cmd.jobs}" if cmd.jobs else ""
+    assert command_line(cmd) == line.replace(jobs, "")
+
+
+def test_flags_take_space_or_comma_separated_names():
+    cmd = CompareCommand(algos=["stepnft,ppo", "stepnft"], tasks=["reach-v3, push-v3"], suites=["ind,vision"])
+    assert cmd.algos == ["stepnft", "ppo"] and cmd.tasks == ["reach-v3", "push-v3"] and cmd.suites == ["ind", "vision"]
+    assert CompareCommand(tasks=[]).tasks is None  # the base config's
+    with pytest.raises(ValueError, match="--algos nope"):
+        CompareCommand(algos=["stepnft,nope"])
+
+
+def test_overrides_are_set_on_the_config_fields_and_checked_there():
+    base = bandit_config(iterations=3, episodes_per_iteration=100)
+    cfg = comparison_config(base, CompareCommand(tasks=["bandit"], env_steps=1000, eval_episodes=7))
+    assert cfg.env.tasks == ["bandit"] and cfg.env_step_budget == 1000 and cfg.eval.episodes == 7
+    assert cfg.iterations == 10 and cfg.num_threads == 1 and cfg.init is None  # the budget binds
+    assert cfg.eval == dataclasses.replace(base.eval, episodes=7) and cfg.algo == base.algo
+    unchanged = comparison_config(dataclasses.replace(base, env_step_budget=500), CompareCommand())
+    assert unchanged.env == base.env and unchanged.eval == base.eval and unchanged.env_step_budget == 500
+
+    # The sections' own checks, with the flags named.
+    with pytest.raises(ValueError, match=r"env_step_budget=0 is invalid.*--env-steps"):
+        comparison_config(base, CompareCommand(env_steps=0))
+    with pytest.raises(ValueError, match="validation and test states must not overlap"):
+        comparison_config(base, CompareCommand(env_steps=10, eval_episodes=10**9))
+    with pytest.raises(ValueError, match="unknown bandit task 'reach-v3'"):
+        comparison_config(base, CompareCommand(env_steps=10, tasks=["reach-v3"]))
+    # What a comparison needs beyond a valid run config.
+    with pytest.raises(ValueError, match="needs one env-step budget"):
+        comparison_config(base, CompareCommand())
+    with pytest.raises(ValueError, match="evaluates every run"):
+        comparison_config(base, CompareCommand(env_steps=10, eval_episodes=0))
+
+
+def test_a_relative_out_folder_gives_relative_paths_in_the_saved_configs(tmp_path, monkeypatch):
+    from stepnft.config import save_config
+
+    save_config(bandit_config(iterations=4, episodes_per_iteration=10), tmp_path / "base.yaml")
+    monkeypatch.chdir(tmp_path)
+    sft_jobs, run_jobs, out = plan(CompareCommand(config="base.yaml", algos=["stepnft", "ppo"], seeds=[0, 1],
+                                                  env_steps=100, out="cmp"))
+    assert str(out) == "cmp" and (tmp_path / "cmp" / "compare.json").is_file()
+    assert [j.name for j in sft_jobs] == ["sft_seed0", "sft_seed1"]
+    assert [j.name for j in run_jobs] == ["stepnft_seed0", "ppo_seed0", "stepnft_seed1", "ppo_seed1"]
+    assert sft_jobs[1].config.run_dir == "cmp/sft/seed1" and sft_jobs[1].config.demos.path == "cmp/demos/seed1"
+    assert run_jobs[2].config.init == "cmp/sft/seed1/policy" and run_jobs[2].config.seed == 1
+    assert run_jobs[0].config.iterations == 10 and run_jobs[0].config.env_step_budget == 100
+    assert run_jobs[0].config.algo.ema_horizon == 4  # the base config's iterations, not the budget's
