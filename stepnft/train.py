@@ -28,6 +28,7 @@ from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
+from stepnft.data.demos import load_or_generate_demos
 from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import RenderingError
@@ -94,9 +95,12 @@ class TrainingRun:
         policy = _init_policy(cfg) if cfg.init else None
         mark_run(run_dir, "train")
         save_config(cfg, run_dir / "config.yaml")
-        with clock.timed("sft"):
-            policy = policy or sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim,
-                                         device=cfg.device, cache_dir=run_dir / "lang_cache", log=log)
+        if policy is None:
+            with clock.timed("demos"):
+                episodes = load_or_generate_demos(cfg.demos, cfg.env, sim, log)
+            with clock.timed("sft"):
+                policy = sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim,
+                                   device=cfg.device, cache_dir=run_dir / "lang_cache", log=log, episodes=episodes)
         policy.save_pretrained(run_dir / "sft_policy")
         run = cls(cfg, run_dir, policy, collector, tasks)
         run.progress.time_s = clock.time_s

@@ -124,14 +124,18 @@ def fit_processor(policy: Policy, data: dict, instructions: list[str], cache_dir
 
 
 def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, simulator=None, init: str | None = None,
-              device: str = "cpu", cache_dir: str | Path | None = None, log: Callable[[str], None] = print) -> Policy:
+              device: str = "cpu", cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
+              episodes: Sequence[DemoEpisode] | None = None) -> Policy:
     """The SFT stage of a run from its ``EnvConfig``, ``DemoConfig``, policy config and
     :class:`SFTConfig`: demonstrations -> a new policy with its processor fitted -> :func:`sft_train`
     (minibatches and noise drawn from a generator seeded by ``seed``). With ``init``, SFT
     fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder). ``simulator``: the
-    env's (default: the registered one). The policy trains, and is returned, on ``device``."""
+    env's (default: the registered one). ``episodes``: the demonstrations, if already loaded
+    (:func:`stepnft.data.demos.load_or_generate_demos`). The policy trains, and is returned, on
+    ``device``."""
     simulator = simulator or get_simulator(env_cfg.name)
-    episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator, log)
+    if episodes is None:
+        episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator, log)
     policy = load_policy(init) if init else make_policy(policy_cfg)
     data = sft_chunks(episodes, env_cfg, simulator, policy.config.horizon, demos_cfg.successful_only)
     instructions = [simulator.instruction(t) for t in simulator.validate_tasks(env_cfg.tasks)]
