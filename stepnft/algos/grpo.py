@@ -22,14 +22,13 @@ from stepnft.policies.base import Policy
 class GRPOConfig(LikelihoodConfig):
     """Hyperparameters of GRPO with Flow-SDE. ``minibatch_size`` counts policy calls."""
 
-    name: str = "grpo"
-    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    group_size: int = 4
-    """Episodes per group, started from the same task and initial state (env.envs_per_task must
-    be a multiple of it)."""
+    defaults = {"name": "grpo", "group_size": 4}
 
-    def check(self) -> dict[str, bool]:
-        return super().check() | {"group_size": self.group_size >= 2}
+    def check(self) -> None:
+        super().check()
+        if self.group_size < 2:
+            raise self.fail("{group_size} must be >= 2 for GRPO: it normalises success within each group",
+                            self.group_size)
 
 
 def group_advantages(batch: Batch, eps: float = 1e-6) -> Tensor:
@@ -64,7 +63,7 @@ class GRPO(Algorithm):
 
     @property
     def rollout(self) -> RolloutSpec:
-        return self.cfg.rollout_spec(self.cfg.group_size)
+        return self.cfg.rollout_spec()
 
     def acting_policy(self) -> Policy:
         return self.policy.eval()

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Annotated, Any, Callable
 
 import torch
 from torch import Tensor, nn
@@ -24,62 +24,45 @@ from stepnft.distributed import data_parallel, shard_forward
 from stepnft.losses import clipped_policy_loss
 from stepnft.policies.base import Policy
 from stepnft.sampling import sde_step_log_prob
+from stepnft.settings import Range
 
 
 @dataclass
 class LikelihoodConfig(AlgoConfig):
-    """What the likelihood-based baselines (PPO, GRPO) share: Flow-SDE rollouts of the current
-    policy and the clipped surrogate on the log-density of the stochastic denoising steps."""
+    """What PPO and GRPO share besides ``AlgoConfig``: the clipped surrogate on the log-density of
+    the stochastic denoising steps. ``minibatch_size`` counts policy calls."""
 
-    noise_level: float = 0.5
-    """Flow-SDE noise level ``a`` of training rollouts; > 0: the likelihood needs noise (the ODE
-    ablation is π-StepNFT's, ``--algo.name stepnft --algo.noise-level 0``)."""
-    sde_steps: Literal["all", "one"] = "all"
-    """``all``: every denoising step stochastic and recorded, a call's log-likelihood summed over
-    the K steps; ``one`` (πRL): one random step per call stochastic and recorded, the others ODE."""
-    clip_coef: float = 0.2
+    defaults = {"noise_level": 0.5}
+
+    clip_coef: Annotated[float, Range(gt=0)] = 0.2
     """PPO clip range ε of the ratio ``exp(log π - log π_old)``."""
-    target_kl: float | None = None
+    target_kl: Annotated[float | None, Range(gt=0)] = None
     """Skip the rest of an iteration's updates once a minibatch's approx-KL exceeds this (looked
     at before stepping); None: off."""
 
-    def check(self) -> dict[str, bool]:
-        return super().check() | {
-            "noise_level": self.noise_level > 0,
-            "sde_steps": self.sde_steps in ("all", "one"),
-            "clip_coef": self.clip_coef > 0,
-            "target_kl": self.target_kl is None or self.target_kl > 0,
-        }
-
-    def rollout_spec(self, group_size: int = 1) -> RolloutSpec:
-        # With one stochastic step per call only that step has a density: record it alone.
-        return RolloutSpec(self.noise_level, self.sde_steps, self.sde_steps, group_size)
+    def check(self) -> None:
+        super().check()
+        if self.noise_level == 0:
+            raise self.fail("{noise_level} must be > 0 for PPO and GRPO: their likelihood needs noise (the ODE "
+                            "ablation is π-StepNFT's)", self.noise_level)
 
 
 @dataclass
 class PPOConfig(LikelihoodConfig):
     """Hyperparameters of PPO with Flow-SDE (πRL). ``minibatch_size`` counts policy calls."""
 
-    name: str = "ppo"
-    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    gamma: float = 0.99
+    defaults = {"name": "ppo"}
+
+    gamma: Annotated[float, Range(ge=0, le=1)] = 0.99
     """Discount per policy call."""
-    gae_lambda: float = 0.95
+    gae_lambda: Annotated[float, Range(ge=0, le=1)] = 0.95
     """GAE λ."""
     norm_adv: bool = True
     """Normalise the advantages over the iteration's calls (mean 0, std 1)."""
-    critic_lr: float = 1e-3
+    critic_lr: Annotated[float, Range(gt=0)] = 1e-3
     """Adam learning rate of the value head (its own optimizer)."""
-    critic_hidden_dim: int = 256
+    critic_hidden_dim: Annotated[int, Range(ge=1)] = 256
     """Width of the value head's two hidden layers."""
-
-    def check(self) -> dict[str, bool]:
-        return super().check() | {
-            "gamma": 0 <= self.gamma <= 1,
-            "gae_lambda": 0 <= self.gae_lambda <= 1,
-            "critic_lr": self.critic_lr > 0,
-            "critic_hidden_dim": self.critic_hidden_dim >= 1,
-        }
 
 
 # --- the likelihood of a policy call ------------------------------------------------------------

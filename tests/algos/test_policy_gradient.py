@@ -145,11 +145,12 @@ def test_rollout_specs_and_config_checks():
     assert PPOConfig(sde_steps="one").rollout_spec().record_steps == "one"
     spec = make_algorithm(GRPOConfig(group_size=4), make_batch([0], [True])[0], 1, torch.Generator()).rollout
     assert (spec.group_size, spec.stochastic_steps, spec.record_steps) == (4, "all", "all")
-    with pytest.raises(ValueError, match="algo.noise_level"):
+    assert make_algorithm(PPOConfig(), make_batch([0], [True])[0], 1, torch.Generator()).rollout.group_size == 1
+    with pytest.raises(ValueError, match="algo.noise_level must be > 0 for PPO and GRPO"):
         PPOConfig(noise_level=0.0)  # no noise, no likelihood: the ODE ablation is π-StepNFT's
-    with pytest.raises(ValueError, match="algo.group_size"):
+    with pytest.raises(ValueError, match="algo.group_size must be >= 2 for GRPO"):
         GRPOConfig(group_size=1)
-    with pytest.raises(ValueError, match="algo.gae_lambda"):
+    with pytest.raises(ValueError, match=r"algo.gae_lambda must be a finite number in \[0, 1\], got 1.5"):
         PPOConfig(gae_lambda=1.5)
 
 
