@@ -19,6 +19,8 @@ import importlib
 import math
 import typing
 from abc import ABC, abstractmethod
+from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -174,23 +176,97 @@ def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor
     return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
 
 
+class MinibatchEpochs:
+    """The minibatch loop of every algorithm's update: ``cfg.update_epochs`` passes over the
+    samples, each in a fresh random order, in minibatches of ``cfg.minibatch_size``. It sums the
+    metrics of the minibatches (``measure``) and of the optimizer steps (``step``), remembers an
+    early stop (``stop_if``: looked at before stepping, so no step is taken from a policy already
+    too far) and averages. An update reads::
+
+        epochs = MinibatchEpochs(cfg, guard)
+        for idx in epochs.minibatches(num_samples, generator):
+            if nothing to learn from idx:
+                epochs.skip()
+                continue
+            loss, metrics = ...
+            epochs.measure(metrics)
+            if epochs.stop_if(metrics["approx_kl"] > cfg.target_kl):
+                break                      # ends every pass
+            epochs.step(loss, params, optimizer)
+        metrics = epochs.means() | epochs.counts("kl_stopped")
+    """
+
+    def __init__(self, cfg: AlgoConfig, guard: NonFiniteGuard):
+        self.cfg, self.guard = cfg, guard
+        self.sums: dict[str, float] = defaultdict(float)  # over measured minibatches
+        self.step_sums: dict[str, float] = defaultdict(float)  # over optimizer steps taken
+        self.seen = self.steps = self.skipped = 0
+        self.stopped = False
+
+    def minibatches(self, num_samples: int, generator: torch.Generator | None) -> Iterator[Tensor]:
+        """Index tensors ``[<= minibatch_size]``; each pass draws its ``torch.randperm`` when it starts."""
+        for _ in range(self.cfg.update_epochs):
+            yield from torch.randperm(num_samples, generator=generator).split(self.cfg.minibatch_size)
+
+    def skip(self) -> None:
+        """A minibatch with nothing to learn (``losses/skipped_empty``)."""
+        self.skipped += 1
+
+    def measure(self, metrics: dict[str, float]) -> None:
+        """Add a minibatch's metrics to the averages over minibatches."""
+        for k, v in metrics.items():
+            self.sums[k] += v
+        self.seen += 1
+
+    def stop_if(self, condition: bool) -> bool:
+        """Record the early-stop test of this minibatch; True: skip the rest of the update."""
+        self.stopped = condition
+        return condition
+
+    def step(self, loss: Tensor, params: list[Tensor], optimizer: torch.optim.Optimizer) -> float | None:
+        """One optimizer step through the guard; returns the gradient norm (None: skipped)."""
+        grad_norm = self.guard.step(loss, params, optimizer)
+        if grad_norm is not None:
+            self.step_sums["grad_norm"] += grad_norm
+            self.steps += 1
+        return grad_norm
+
+    def measure_step(self, metrics: dict[str, float]) -> None:
+        """Add metrics averaged over optimizer steps (e.g. PPO's critic loss)."""
+        for k, v in metrics.items():
+            self.step_sums[k] += v
+
+    def means(self) -> dict[str, float]:
+        """Minibatch metrics averaged over measured minibatches, step metrics over steps taken."""
+        return ({k: v / max(self.seen, 1) for k, v in self.sums.items()}
+                | {k: v / max(self.steps, 1) for k, v in self.step_sums.items()})
+
+    def counts(self, stopped_name: str) -> dict[str, float]:
+        """``losses/update_steps``, ``losses/<stopped_name>``, ``losses/skipped_empty``, ``losses/skipped_nonfinite``."""
+        return {"losses/update_steps": float(self.steps), f"losses/{stopped_name}": float(self.stopped),
+                "losses/skipped_empty": float(self.skipped), "losses/skipped_nonfinite": float(self.guard.take_skipped())}
+
+
 class Algorithm(ABC):
-    """One RL fine-tuning method (see the module doc for the loop that drives it)."""
+    """One RL fine-tuning method (see the module doc for the loop that drives it). Every one
+    owns an AdamW optimizer of the policy and a NonFiniteGuard; by default the policy acts."""
 
     name: ClassVar[str]
     config_class: ClassVar[type[AlgoConfig]]
 
     def __init__(self, policy: Policy, cfg: AlgoConfig, iterations: int, generator: torch.Generator):
         self.policy, self.cfg, self.iterations, self.generator = policy, cfg, iterations, generator
+        self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.guard = NonFiniteGuard(cfg)
 
     @property
-    @abstractmethod
     def rollout(self) -> RolloutSpec:
         """How the collector should sample and record."""
+        return self.cfg.rollout_spec()
 
-    @abstractmethod
     def acting_policy(self) -> Policy:
-        """The policy that acts in training rollouts."""
+        """The policy that acts in training rollouts (default: the trained one, in eval mode)."""
+        return self.policy.eval()
 
     def eval_policy(self) -> Policy:
         """The policy that evaluation and ``policy/`` report (default: the trained one)."""
@@ -204,13 +280,15 @@ class Algorithm(ABC):
         """Called once after each iteration's update (0-based ``iteration``); returns metrics."""
         return {}
 
-    @abstractmethod
     def state_dict(self) -> dict[str, Any]:
-        """Everything the algorithm owns beyond the policy weights (tensors and JSON values)."""
+        """Everything the algorithm owns beyond the policy weights (tensors and JSON values);
+        a subclass adds what it owns besides the optimizer."""
+        return {"optimizer": self.optimizer.state_dict(), "nonfinite_in_a_row": self.guard.in_a_row}
 
-    @abstractmethod
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)
 
 
 def algorithm_class(name: str) -> type[Algorithm]:

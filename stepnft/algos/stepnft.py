@@ -7,14 +7,13 @@ the training loop drives.
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer, step_velocity
+from stepnft.algos.base import AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, step_velocity
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
@@ -212,47 +211,33 @@ def stepnft_update(
     learner = data_parallel(policy)
     y = step_labels(batch, cfg)
     weights = sample_weights(batch, y, cfg)
-    sums: dict[str, float] = defaultdict(float)
-    seen = steps = skipped = 0
-    stopped = False
-    for _ in range(cfg.update_epochs):
-        for idx in torch.randperm(batch.num_steps, generator=generator).split(cfg.minibatch_size):
-            w = None if weights is None else weights[idx]
-            if w is not None and not bool(w.sum() > 0):
-                skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
-                continue
-            v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), idx)
-            calls = batch.call[idx]
-            v_old, x_t, x_next, t, dt, label, mask, actions, w = to_device(
-                (batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], y[idx],
-                 batch.mask[calls], batch.actions[calls], w), v.device)
-            loss, metrics = stepnft_loss(
-                v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
-                max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
-                actions=actions, weight=w,
-            )
-            if math.isfinite(metrics["loss"]):
-                for k, val in metrics.items():
-                    sums[k] += val
-                seen += 1
-            # The drift guard looks before it steps: no update is taken from a policy already too
-            # far from v_old, so the drift stays near the limit however large the learning rate.
-            stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
-            if stopped:
-                break
-            grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
-            if grad_norm is not None:
-                sums["grad_norm"] += grad_norm
-                steps += 1
-        if stopped:
+    epochs = MinibatchEpochs(cfg, guard)
+    for idx in epochs.minibatches(batch.num_steps, generator):
+        w = None if weights is None else weights[idx]
+        if w is not None and not bool(w.sum() > 0):
+            epochs.skip()  # nothing to learn here; an Adam step on zero gradients would still move
+            continue
+        v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), idx)
+        calls = batch.call[idx]
+        v_old, x_t, x_next, t, dt, label, mask, actions, w = to_device(
+            (batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], y[idx],
+             batch.mask[calls], batch.actions[calls], w), v.device)
+        loss, metrics = stepnft_loss(
+            v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
+            max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
+            actions=actions, weight=w,
+        )
+        if math.isfinite(metrics["loss"]):
+            epochs.measure(metrics)
+        # The drift guard looks before it steps: no update is taken from a policy already too
+        # far from v_old, so the drift stays near the limit however large the learning rate.
+        if epochs.stop_if(cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit):
             break
-    means = {k: v / max(seen, 1) for k, v in sums.items()}
-    means["grad_norm"] = sums["grad_norm"] / max(steps, 1)
+        epochs.step(loss, list(policy.parameters()), optimizer)
+    means = epochs.means()
+    means.setdefault("grad_norm", 0.0)
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
-    out |= {f"losses/{k}": v for k, v in means.items()}
-    out |= {"losses/update_steps": float(steps), "losses/drift_stopped": float(stopped),
-            "losses/skipped_empty": float(skipped), "losses/skipped_nonfinite": float(guard.take_skipped())}
-    return out
+    return out | {f"losses/{k}": v for k, v in means.items()} | epochs.counts("drift_stopped")
 
 
 # --- the algorithm ----------------------------------------------------------------------------
@@ -265,13 +250,7 @@ class StepNFT(Algorithm):
     def __init__(self, policy: Policy, cfg: StepNFTConfig, iterations: int, generator: torch.Generator):
         super().__init__(policy, cfg, iterations, generator)
         self.ema = make_ema_copy(policy)
-        self.optimizer = make_optimizer(policy.parameters(), cfg)
-        self.guard = NonFiniteGuard(cfg)
         self.ema_horizon = cfg.ema_horizon or iterations
-
-    @property
-    def rollout(self) -> RolloutSpec:
-        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps, self.cfg.group_size)
 
     def acting_policy(self) -> Policy:
         return self.ema.eval()
@@ -289,10 +268,8 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "nonfinite_in_a_row": self.guard.in_a_row}
+        return super().state_dict() | {"ema": self.ema.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
         self.ema.load_state_dict(state["ema"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)

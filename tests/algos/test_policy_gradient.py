@@ -1,13 +1,13 @@
 """PPO and GRPO with Flow-SDE on hand-built batches: GAE, group normalisation, the likelihood of
-a call, the direction of an update, checkpoints, config checks."""
+a call (``stepnft.algos.likelihood``), the direction of an update, checkpoints, config checks."""
 
 import pytest
 import torch
 
 from stepnft.algos.base import make_algorithm
 from stepnft.algos.grpo import GRPOConfig, group_advantages
-from stepnft.algos.ppo import (PPOConfig, call_step_rows, gae, policy_gradient_update, steps_log_prob,
-                               success_rewards)
+from stepnft.algos.likelihood import call_step_rows, policy_gradient_update, steps_log_prob
+from stepnft.algos.ppo import PPOConfig, gae, success_rewards
 from stepnft.batch import Batch
 from stepnft.checkpoint import flatten_state, unflatten_state
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
