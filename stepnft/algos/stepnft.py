@@ -235,7 +235,7 @@ def stepnft_update(
             break
         epochs.step(loss, list(policy.parameters()), optimizer)
     means = epochs.means()
-    means.setdefault("grad_norm", 0.0)
+    means.setdefault("grad_norm", 0.0)  # logged every iteration, 0 when no step was taken
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
     return out | {f"losses/{k}": v for k, v in means.items()} | epochs.counts("drift_stopped")
 
