@@ -129,7 +129,7 @@ class Batch:
 
     @classmethod
     def concat(cls, batches: list["Batch"]) -> "Batch":
-        """Stack batches (e.g. rollout waves) into one, re-pointing the ``episode`` and ``call`` links."""
+        """Stack batches (e.g. the parts of a plan played by several workers) into one, re-pointing the ``episode`` and ``call`` links."""
         episode_offset = call_offset = 0
         parts: dict[str, list[Tensor]] = {f.name: [] for f in fields(cls) if f.name != "obs"}
         obs: dict[str, list[Tensor]] = {k: [] for k in batches[0].obs}

@@ -1,7 +1,8 @@
 """``stepnft`` command line: demos, sft, train, eval, demo-bandit.
 
-Every command's flags are generated from the config dataclasses (``stepnft.config``): one
-schema, the same checks for flags and YAML. ``sft``, ``train`` and ``demo-bandit`` read an
+Every command's flags are generated from the config dataclasses (``stepnft.config``): tyro
+reads them into plain values, then the config is built, and checked, once from them, as a YAML
+file is (``stepnft.settings``). ``sft``, ``train`` and ``demo-bandit`` read an
 optional ``--config FILE.yaml`` first; every other flag overrides a field of it
 (``--algo.lr 1e-4``, ``--env.tasks reach-v3 push-v3``). ``--algo.name`` picks the algorithm,
 and the ``--algo.*`` flags are then that algorithm's. Bad input ends with one line on stderr
@@ -16,6 +17,7 @@ import io
 import dataclasses
 import json
 import sys
+import typing
 from pathlib import Path
 
 COMMANDS = {
@@ -28,9 +30,10 @@ COMMANDS = {
 }
 
 CONFIG_SECTIONS = ("env", "demos", "policy", "sft", "algo", "eval", "ray")
-"""The sections of ``TrainConfig`` (kept here so ``stepnft --help`` needs no heavy import)."""
+"""The sections of ``TrainConfig`` (kept here so ``stepnft --help`` needs no heavy import; a
+test checks them against ``TrainConfig``)."""
 
-LEGACY_FLAGS = {
+RENAMED_FLAGS = {
     "demos": {"--out": "--demos.path", "--tasks": "--env.tasks", "--episodes": "--demos.episodes",
               "--seed": "--demos.seed", "--action-noise": "--demos.action-noise",
               "--max-episode-steps": "--env.max-episode-steps"},
@@ -39,7 +42,7 @@ LEGACY_FLAGS = {
     "demo-bandit": {"--noise-level": "--algo.noise-level", "--target": "--algo.target", "--form": "--algo.form",
                     "--beta": "--algo.beta"},
 }
-"""Flags of earlier releases, still accepted: each is the same as the flag it maps to."""
+"""Flags of earlier releases, no longer accepted: an error names the flag that replaced each."""
 
 
 class UsageError(Exception):
@@ -47,23 +50,59 @@ class UsageError(Exception):
 
 
 def _parse(cls, argv: list[str], default, prog: str, description: str | None = None):
-    """Parse ``argv`` over ``default`` into ``cls``; a bad value raises ValueError.
-
-    tyro reports a ValueError raised while it builds a nested section (``--algo.lr -1``) in a
-    box of its own, so sections are built unvalidated and their checks run after parsing.
-    """
+    """Parse ``argv`` over ``default`` (an instance of config dataclass ``cls``): tyro turns the
+    flags into plain values, then ``cls`` is built, and checked, once from them
+    (``stepnft.config.from_dict``). A bad value is a UsageError naming its flag."""
     import tyro
+
+    from stepnft.config import from_dict
+    from stepnft.settings import SettingError
 
     errors = io.StringIO()
     try:
-        with _validation_deferred(default), contextlib.redirect_stderr(errors):
-            parsed = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
+        with _flags_as_values(), contextlib.redirect_stderr(errors):
+            values = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
     except SystemExit as stop:
         if stop.code not in (0, None):
-            raise UsageError(f"{_first_message(errors.getvalue())}; see `{prog} --help`") from None
+            message = _renamed_flag(argv, prog) or f"{_first_message(errors.getvalue())}; see `{prog} --help`"
+            raise UsageError(message) from None
         raise
-    _validate(parsed)
-    return parsed
+    try:
+        return from_dict(cls, values)
+    except SettingError as err:
+        raise UsageError(err.as_flags()) from None
+
+
+@contextlib.contextmanager
+def _flags_as_values():
+    """Within the block, tyro parses every dataclass (nested sections too) into a dict of its
+    field values instead of building it: the help, flags and defaults stay the dataclass's."""
+    from tyro.constructors import ConstructorRegistry, StructConstructorSpec
+
+    registry, inside = ConstructorRegistry(), []
+
+    @registry.struct_rule
+    def as_values(info):
+        if inside or not dataclasses.is_dataclass(info.type):
+            return None
+        inside.append(info)  # while tyro's own dataclass rule describes the fields
+        try:
+            spec = ConstructorRegistry.get_struct_spec(info)
+        finally:
+            inside.pop()
+        return dataclasses.replace(spec, instantiate=dict) if isinstance(spec, StructConstructorSpec) else spec
+
+    with registry:
+        yield
+
+
+def _renamed_flag(argv: list[str], prog: str) -> str | None:
+    """The error for a flag of an earlier release in ``argv``, if there is one."""
+    renamed = RENAMED_FLAGS.get(prog.removeprefix("stepnft "), {})
+    for flag in (arg.partition("=")[0] for arg in argv):
+        if flag in renamed:
+            return f"{flag} is now {renamed[flag]} (the flags of earlier releases were removed); see `{prog} --help`"
+    return None
 
 
 def _first_message(box: str) -> str:
@@ -79,38 +118,12 @@ def _first_message(box: str) -> str:
     return " ".join(lines) or "invalid arguments"
 
 
-def _section_classes(obj) -> set[type]:
-    """The classes of ``obj`` and of its nested sections, and their bases."""
-    found = {c for c in type(obj).__mro__ if dataclasses.is_dataclass(c)}
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            found |= _section_classes(value)
-    return found
+def _resumable_flags() -> str:
+    """The flags ``--resume`` takes (``TrainConfig.resumable``), e.g. ``--ray.* and --device``."""
+    from stepnft.config import TrainConfig
 
-
-@contextlib.contextmanager
-def _validation_deferred(default):
-    """Within the block, the config classes skip their ``__post_init__`` checks."""
-    saved = {c: c.__dict__["__post_init__"] for c in _section_classes(default) if "__post_init__" in c.__dict__}
-    for c in saved:
-        c.__post_init__ = lambda self: None
-    try:
-        yield
-    finally:
-        for c, check in saved.items():
-            c.__post_init__ = check
-
-
-def _validate(obj) -> None:
-    """Run the ``__post_init__`` checks of ``obj``'s sections, innermost first, then its own."""
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            _validate(value)
-    check = getattr(obj, "__post_init__", None)
-    if check is not None:
-        check()
+    sections = {k for k, hint in typing.get_type_hints(TrainConfig).items() if dataclasses.is_dataclass(hint)}
+    return " and ".join(f"--{k}.*" if k in sections else f"--{k}" for k in TrainConfig.resumable)
 
 
 def _describe(cls) -> str:
@@ -121,66 +134,76 @@ def _describe(cls) -> str:
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
                 " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
-                " the last checkpoint of a run; it takes no other flags than --ray.* and --device).")
+                f" the last checkpoint of a run; it takes no other flags than {_resumable_flags()}).")
     return doc
 
 
-def _translate_legacy(argv: list[str], command: str) -> list[str]:
-    table = LEGACY_FLAGS.get(command, {})
-    out = []
-    for arg in argv:
-        flag, eq, value = arg.partition("=")
-        out.append(table[flag] + eq + value if flag in table else arg)
-    return out
+def _option(argv: list[str], flag: str) -> str | None:
+    """The value of option ``flag`` in ``argv`` (argparse: ``--flag V`` or ``--flag=V``), if given."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument(flag, dest="value")
+    return parser.parse_known_args(argv)[0].value
 
 
-def _algo_name(argv: list[str]) -> str | None:
-    """The value of ``--algo.name`` in ``argv``, if given."""
-    for i, arg in enumerate(argv):
-        if arg.startswith("--algo.name="):
-            return arg.split("=", 1)[1]
-        if arg == "--algo.name" and i + 1 < len(argv):
-            return argv[i + 1]
-    return None
-
-
-def _train_config_from_argv(argv: list[str], prog: str, allow_resume: bool, base=None):
-    """Split off --config / --resume, then parse the rest over the YAML (or ``base``) defaults.
-    Returns ``(TrainConfig, resume)``."""
+def _config_from_argv(argv: list[str], prog: str, allow_resume: bool, base=None):
+    """``--config FILE`` (a YAML file) or ``--resume RUN`` (a run's config.yaml), and
+    ``--algo.name`` (that algorithm's defaults), give the defaults the other flags are parsed
+    over (else ``base`` or ``TrainConfig()``). Returns ``(TrainConfig, resumed)``."""
     from stepnft.algos.base import config_class
     from stepnft.config import TrainConfig, load_config
+    from stepnft.settings import SettingError
 
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     pre.add_argument("--config")
     if allow_resume:
         pre.add_argument("--resume")
     known, rest = pre.parse_known_args(argv)
-    resume = getattr(known, "resume", None)
-    if resume and not any(a in ("-h", "--help") for a in rest):
-        if (rest and not rest[0].startswith(("--ray.", "--device"))) or known.config:
-            extra = " ".join(rest + (["--config", known.config] if known.config else []))
-            raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags "
-                             f"than --ray.* and --device; drop: {extra}")
-        cfg_path = Path(resume) / "config.yaml"
-        if not cfg_path.is_file():
-            raise UsageError(f"cannot resume {resume}: no config.yaml there (is it a stepnft run directory?)")
-        cfg = load_config(cfg_path)
-        cfg.run_dir = resume  # the folder may have been moved or copied since it was written
-        if rest:  # --ray.* and --device say where a run computes, not what: a run may resume elsewhere
-            parsed = _parse(TrainConfig, rest, cfg, prog)
-            if dataclasses.replace(parsed, ray=cfg.ray, device=cfg.device) != cfg:
-                raise UsageError(f"--resume takes no other flags than --ray.* and --device; drop: {' '.join(rest)}")
-            cfg = parsed
-        return cfg, True
+    if getattr(known, "resume", None):
+        return _resumed_config(known.resume, known.config, rest, prog), True
     base = load_config(known.config) if known.config else (base or TrainConfig())
-    name = _algo_name(rest)
+    name = _option(rest, "--algo.name")
     if name is not None and name != base.algo.name:
-        base = dataclasses.replace(base, algo=config_class(name)())  # that algorithm's defaults
+        try:
+            base = dataclasses.replace(base, algo=config_class(name)())  # that algorithm's defaults
+        except SettingError as err:
+            raise UsageError(err.as_flags()) from None
     return _parse(TrainConfig, rest, base, prog), False
 
 
-def _config_from_argv(argv: list[str], prog: str, allow_resume: bool):
-    return _train_config_from_argv(argv, prog, allow_resume)
+def _resumed_config(run_dir: str, config: str | None, rest: list[str], prog: str):
+    """The config of the run in ``run_dir`` (its config.yaml); the flags in ``rest`` may change
+    only ``TrainConfig.resumable`` (where the run computes, not what)."""
+    from stepnft.config import TrainConfig, load_config
+
+    if config:
+        raise UsageError(f"--resume continues a run with its own config.yaml; drop: --config {config}")
+    cfg_path = Path(run_dir) / "config.yaml"
+    if not cfg_path.is_file():
+        raise UsageError(f"cannot resume {run_dir}: no config.yaml there (is it a stepnft run directory?)")
+    # The folder may have been moved or copied since its config.yaml was written.
+    cfg = dataclasses.replace(load_config(cfg_path), run_dir=run_dir)
+    name = _option(rest, "--algo.name")
+    parsed = _parse(TrainConfig, rest, cfg, prog) if name in (None, cfg.algo.name) else None
+    changed = ["--algo.name"] if parsed is None else _differences(cfg, parsed, skip=TrainConfig.resumable)
+    if changed:
+        raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags than "
+                         f"{_resumable_flags()}; drop: {' '.join(changed)}")
+    return parsed
+
+
+def _differences(before, after, prefix: str = "", skip: tuple[str, ...] = ()) -> list[str]:
+    """The flags of the settings that differ between two configs (nested sections included),
+    except the fields in ``skip``."""
+    flags = []
+    for f in dataclasses.fields(after):
+        old, new = getattr(before, f.name), getattr(after, f.name)
+        if f.name in skip:
+            continue
+        if dataclasses.is_dataclass(new) and type(old) is type(new):
+            flags += _differences(old, new, f"{prefix}{f.name}.")
+        elif old != new:
+            flags.append("--" + f"{prefix}{f.name}".replace("_", "-"))
+    return flags
 
 
 def cmd_demos(argv: list[str]) -> int:
@@ -189,7 +212,7 @@ def cmd_demos(argv: list[str]) -> int:
 
     from stepnft.config import DemosCommand
 
-    args = _parse(DemosCommand, _translate_legacy(argv, "demos"), DemosCommand(), "stepnft demos")
+    args = _parse(DemosCommand, argv, DemosCommand(), "stepnft demos")
     sim = get_simulator(args.env.name)
     tasks = sim.validate_tasks(args.env.tasks)
     _writable_dir(args.demos.path, "--demos.path")
@@ -206,7 +229,7 @@ def cmd_demos(argv: list[str]) -> int:
 def cmd_sft(argv: list[str]) -> int:
     from stepnft.train import run_sft
 
-    cfg, _ = _train_config_from_argv(argv, "stepnft sft", allow_resume=False)
+    cfg, _ = _config_from_argv(argv, "stepnft sft", allow_resume=False)
     run_sft(cfg)
     return 0
 
@@ -214,7 +237,7 @@ def cmd_sft(argv: list[str]) -> int:
 def cmd_train(argv: list[str]) -> int:
     from stepnft.train import train
 
-    cfg, resume = _train_config_from_argv(argv, "stepnft train", allow_resume=True)
+    cfg, resume = _config_from_argv(argv, "stepnft train", allow_resume=True)
     train(cfg, resume=resume)
     return 0
 
@@ -230,7 +253,7 @@ def cmd_eval(argv: list[str]) -> int:
     from stepnft.config import EvalCommand
     from stepnft.devices import resolve_device
 
-    args = _parse(EvalCommand, _translate_legacy(argv, "eval"), EvalCommand(), "stepnft eval")
+    args = _parse(EvalCommand, argv, EvalCommand(), "stepnft eval")
     device = resolve_device(args.device)
     sim = get_simulator(args.env.name)
     args.env.tasks = sim.validate_tasks(args.env.tasks)
@@ -274,8 +297,7 @@ def _writable_dir(path: str | Path, flag: str) -> Path:
 def cmd_demo_bandit(argv: list[str]) -> int:
     from stepnft.demo_bandit import bandit_config, run_bandit_demo
 
-    cfg, _ = _train_config_from_argv(_translate_legacy(argv, "demo-bandit"), "stepnft demo-bandit",
-                                     allow_resume=False, base=bandit_config())
+    cfg, _ = _config_from_argv(argv, "stepnft demo-bandit", allow_resume=False, base=bandit_config())
     summary = run_bandit_demo(cfg)
     print(f"success {summary['average']['before']:.3f} (SFT) -> {summary['average']['after']:.3f} ({cfg.algo.name})")
     return 0

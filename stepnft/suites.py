@@ -29,6 +29,7 @@ import numpy as np
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.perturbations import OOD_SUITES, SUITES, Perturbations
 from stepnft.evaluate import evaluate_policy, format_ci, format_table, record_videos
+from stepnft.names import split_names
 from stepnft.policies.base import Policy
 
 SUITE_NAMES = tuple(SUITES)
@@ -47,7 +48,7 @@ def suite_applies(suite: str, policy_config) -> tuple[bool, str]:
 
 def check_suites(suites: Sequence[str]) -> list[str]:
     """Suite names from a list or comma-separated strings; a ValueError names the valid ones."""
-    names = [n.strip() for item in suites for n in item.split(",") if n.strip()]
+    names = split_names(suites)
     unknown = [n for n in names if n not in SUITES]
     if unknown or not names:
         raise ValueError(f"unknown suite {unknown[0] if unknown else ''!r}; choose among: {', '.join(SUITES)}")

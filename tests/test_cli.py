@@ -84,52 +84,69 @@ def test_help_lists_every_command_and_config_section(capsys):
         assert run_cli(capsys, command, "--help")[0] == 0
 
 
-def test_legacy_flags_mean_the_same_as_the_section_flags(tmp_path):
-    from stepnft.cli import _parse, _translate_legacy
-    from stepnft.config import DemosCommand, EvalCommand
-
-    old = _parse(DemosCommand, _translate_legacy(["--out", "d", "--tasks", "reach-v3", "--episodes=3"], "demos"),
-                 DemosCommand(), "x")
-    new = _parse(DemosCommand, ["--demos.path", "d", "--env.tasks", "reach-v3", "--demos.episodes", "3"],
-                 DemosCommand(), "x")
-    assert old == new and new.demos.episodes == 3 and new.env.tasks == ["reach-v3"]
-    old = _parse(EvalCommand, _translate_legacy(["--episodes", "7", "--seed", "2"], "eval"), EvalCommand(), "x")
-    assert (old.eval.episodes, old.eval.seed) == (7, 2)
+@pytest.mark.parametrize("argv, expected", [
+    (["demos", "--tasks", "reach-v3"], "--tasks is now --env.tasks"),
+    (["demos", "--env.tasks", "reach-v3", "--out=d"], "--out is now --demos.path"),
+    (["eval", "--episodes", "7"], "--episodes is now --eval.episodes"),
+    (["eval", "--seed", "2"], "--seed is now --eval.seed"),
+    (["demo-bandit", "--beta", "2"], "--beta is now --algo.beta"),
+])
+def test_flags_of_earlier_releases_name_their_replacement(capsys, argv, expected):
+    line = assert_one_line_error(*run_cli(capsys, *argv)[::2], argv[0])
+    assert expected in line and "were removed" in line
 
 
 def test_comma_separated_tasks_work_everywhere():
     cfg, _ = _config_from_argv(["--env.tasks", "reach-v3,push-v3"], "stepnft train", True)
     assert cfg.env.tasks == ["reach-v3", "push-v3"]
+    cfg, _ = _config_from_argv(["--env.tasks", "reach-v3,push-v3", "door-open-v3", "--env.randomize",
+                                      "friction,mass"], "stepnft train", True)
+    assert cfg.env.tasks == ["reach-v3", "push-v3", "door-open-v3"] and cfg.env.randomize == ["friction", "mass"]
 
 
 @pytest.mark.parametrize("argv, expected", [
     (["train", "--env.tasks", "reach-v3", "nope-v3"], "unknown MetaWorld task 'nope-v3'; valid names: assembly-v3"),
-    (["train", "--algo.lr", "-1"], "algo.lr=-1.0 is invalid"),
-    (["train", "--env.max-episode-steps", "900"], "env.max_episode_steps must be in 1..500, got 900"),
-    (["train", "--iterations", "-1"], "iterations must be >= 0"),
-    (["sft", "--policy.n-exec", "9"], "policy.n_exec (9) must be <= policy.horizon (4)"),
-    (["eval", "--tasks", "nope-v3"], "unknown MetaWorld task 'nope-v3'"),
-    (["eval", "--episodes", "-1"], "eval.episodes, eval.every and eval.seed must be >= 0"),
-    (["eval", "--env.envs-per-task", "0"], "env.envs_per_task must be >= 1"),
-    (["train", "--algo.name", "dqn"], "unknown algorithm 'dqn'; choose one of: stepnft"),
-    (["train", "--env.name", "gazebo"], "env.name='gazebo' is unknown; choose one of: metaworld, bandit"),
-    (["train", "--algo.sde-steps", "one"], "sde_steps=one needs algo.record_steps=one"),
-    (["train", "--algo.lr", "inf"], "algo.lr=inf is invalid"),
-    (["train", "--algo.noise-level", "1e6"], "algo.noise_level=1000000.0 is invalid"),
-    (["train", "--algo.noise-level", "inf"], "algo.noise_level=inf is invalid"),
-    (["train", "--algo.beta", "inf"], "algo.beta=inf is invalid"),
-    (["train", "--algo.kl-beta", "nan"], "algo.kl_beta=nan is invalid"),
-    (["train", "--algo.grad-clip", "nan"], "algo.grad_clip=nan is invalid"),
-    (["train", "--algo.max-drift", "0"], "algo.max_drift=0.0 is invalid"),
-    (["train", "--algo.ema-horizon", "0"], "algo.ema_horizon=0 is invalid"),
-    (["train", "--policy.state-min-std", "0"], "policy.state_min_std and policy.state_clip must be finite and > 0"),
-    (["train", "--policy.time-embed-dim", "63"], "policy.time_embed_dim must be even"),
-    (["train", "--num-threads", "0"], "num_threads=0 is invalid"),
-    (["train", "--num-threads", "-2"], "num_threads=-2 is invalid"),
-    (["train", "--env-step-budget", "-1"], "env_step_budget=-1 is invalid"),
-    (["train", "--eval.every", "-1"], "eval.every and eval.seed must be >= 0"),
-    (["train", "--env.num-workers", "-1"], "env.num_workers must be >= 0"),
-    (["demos", "--demos.action-noise", "nan"], "demos.action_noise must be a finite number >= 0"),
+    (["train", "--algo.lr", "-1"], "--algo.lr must be a finite number > 0, got -1.0"),
+    (["train", "--env.max-episode-steps", "900"], "--env.max-episode-steps must be in [1, 500] for metaworld, got 900"),
+    (["train", "--iterations", "-1"], "--iterations must be an integer >= 0, got -1"),
+    (["train", "--seed", "-1"], "--seed must be an integer >= 0, got -1"),
+    (["sft", "--policy.n-exec", "9"], "--policy.n-exec (9) must be <= --policy.horizon (4)"),
+    (["eval", "--env.tasks", "nope-v3"], "unknown MetaWorld task 'nope-v3'"),
+    (["eval", "--eval.episodes", "-1"], "--eval.episodes must be an integer >= 0, got -1"),
+    (["eval", "--env.envs-per-task", "0"], "--env.envs-per-task must be an integer >= 1, got 0"),
+    (["eval", "--device", "gpu"], "--device must be cpu, cuda or cuda:N, got 'gpu'"),
+    (["train", "--algo.name", "dqn"], "--algo.name must be one of stepnft, ppo, grpo, got 'dqn'"),
+    (["train", "--env.name", "gazebo"], "--env.name must be one of metaworld, bandit, libero, got 'gazebo'"),
+    (["train", "--algo.sde-steps", "one"], "--algo.sde-steps=one needs --algo.record-steps=one"),
+    (["train", "--algo.lr", "inf"], "--algo.lr must be a finite number > 0, got inf"),
+    (["train", "--algo.noise-level", "1e6"], "--algo.noise-level must be a finite number in [0, 10], got 1000000.0"),
+    (["train", "--algo.noise-level", "inf"], "--algo.noise-level must be a finite number in [0, 10], got inf"),
+    (["train", "--algo.beta", "inf"], "--algo.beta must be a finite number > 0, got inf"),
+    (["train", "--algo.kl-beta", "nan"], "--algo.kl-beta must be a finite number >= 0, got nan"),
+    (["train", "--algo.grad-clip", "nan"], "--algo.grad-clip must be a finite number > 0, got nan"),
+    (["train", "--algo.max-drift", "0"], "--algo.max-drift must be a finite number > 0 or None, got 0.0"),
+    (["train", "--algo.ema-horizon", "0"], "--algo.ema-horizon must be an integer >= 1 or None, got 0"),
+    (["train", "--algo.name", "ppo", "--algo.noise-level", "inf"], "--algo.noise-level must be a finite number"),
+    (["train", "--algo.name", "ppo", "--algo.noise-level", "0"], "--algo.noise-level must be > 0 for PPO and GRPO"),
+    (["train", "--algo.name", "ppo", "--algo.critic-lr", "inf"], "--algo.critic-lr must be a finite number > 0, got inf"),
+    (["train", "--algo.name", "ppo", "--algo.clip-coef", "inf"], "--algo.clip-coef must be a finite number > 0, got inf"),
+    (["train", "--algo.name", "grpo", "--algo.clip-coef", "nan"], "--algo.clip-coef must be a finite number > 0, got nan"),
+    (["train", "--algo.name", "grpo", "--algo.group-size", "1"], "--algo.group-size must be >= 2 for GRPO"),
+    (["train", "--sft.lr", "inf"], "--sft.lr must be a finite number > 0, got inf"),
+    (["train", "--sft.weight-decay", "inf"], "--sft.weight-decay must be a finite number >= 0, got inf"),
+    (["train", "--policy.state-min-std", "0"], "--policy.state-min-std must be a finite number > 0, got 0.0"),
+    (["train", "--policy.time-embed-dim", "63"], "--policy.time-embed-dim must be even"),
+    (["train", "--policy.cameras", "corner"], "--policy.cameras ['corner'] differ from --env.cameras []"),
+    (["train", "--num-threads", "0"], "--num-threads must be an integer >= 1, got 0"),
+    (["train", "--num-threads", "-2"], "--num-threads must be an integer >= 1, got -2"),
+    (["train", "--env-step-budget", "-1"], "--env-step-budget must be an integer >= 1 or None, got -1"),
+    (["train", "--eval.every", "-1"], "--eval.every must be an integer >= 0, got -1"),
+    (["train", "--eval.validation-seed", "5"], "--eval.validation-seed (5) must be >= --eval.seed + --eval.episodes (100)"),
+    (["train", "--env.num-workers", "-1"], "--env.num-workers must be an integer >= 0, got -1"),
+    (["train", "--env.randomize", "nope"], "--env.randomize: unknown perturbation 'nope'"),
+    (["train", "--ray.address", "auto"], "--ray.address needs rollout workers on the cluster: set --ray.workers N"),
+    (["demos", "--demos.action-noise", "nan"], "--demos.action-noise must be a finite number >= 0, got nan"),
+    (["demos", "--demos.max-attempts", "2"], "--demos.max-attempts must be >= the demonstrations wanted (5), got 2"),
     (["train", "--iterations", "notanint"], "Error parsing --iterations"),
 ])
 def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
@@ -143,12 +160,15 @@ def test_invalid_values_are_one_line(capsys, existing_run, argv, expected):
 @pytest.mark.parametrize("yaml_text, expected", [
     ("iterations: 3\nnot_a_key: 1\n", "unknown config key 'not_a_key'"),
     ("algo:\n  lrr: 0.1\n", "unknown config key 'algo.lrr'"),
-    ("iterations: many\n", "iterations='many' has the wrong type, expected int"),
-    ("env:\n  tasks: 5\n", "env.tasks=5 has the wrong type"),
-    ("algo:\n  lr: -1\n", "algo.lr=-1.0 is invalid"),
+    ("iterations: many\n", "iterations must be an integer >= 0, got 'many'"),
+    ("seed: true\n", "seed must be an integer >= 0, got True"),
+    ("env:\n  tasks: 5\n", "env.tasks must be a list of names, got 5"),
+    ("algo:\n  lr: -1\n", "algo.lr must be a finite number > 0, got -1"),
+    ("algo:\n  name: ppo\n  critic_lr: .inf\n", "algo.critic_lr must be a finite number > 0, got inf"),
+    ("policy:\n  n_exec: 2.5\n", "policy.n_exec must be an integer >= 1, got 2.5"),
     ("iterations: [1\n", "is not valid YAML"),
-    ("algo:\n  target: x1\n", "algo.target='x1' has the wrong type, expected 'next' or 'x0'"),
-    ("algo:\n  name: dqn\n", "unknown algorithm 'dqn'"),
+    ("algo:\n  target: x1\n", "algo.target must be one of next, x0, got 'x1'"),
+    ("algo:\n  name: dqn\n", "algo.name must be one of stepnft, ppo, grpo, got 'dqn'"),
 ])
 def test_bad_yaml_configs_are_one_line(capsys, tmp_path, existing_run, yaml_text, expected):
     config = tmp_path / "config.yaml"
@@ -160,8 +180,6 @@ def test_bad_yaml_configs_are_one_line(capsys, tmp_path, existing_run, yaml_text
 
 
 def test_a_yaml_config_is_read_and_flags_override_it(tmp_path):
-    from stepnft.cli import _config_from_argv
-
     config = tmp_path / "config.yaml"
     config.write_text("iterations: 7\nenv:\n  tasks: reach-v3,push-v3\nalgo:\n  lr: 0.001\n")
     cfg, resume = _config_from_argv(["--config", str(config), "--algo.lr", "0.002"], "stepnft train", True)
@@ -199,7 +217,7 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     assert "holds an SFT run, not a training run" in line
 
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
-    assert "takes no other flags than --ray.* and --device; drop: --iterations 9" in line
+    assert "takes no other flags than --ray.* and --device; drop: --iterations" in line
 
 
 def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):
@@ -219,9 +237,11 @@ def test_unwritable_outputs_fail_before_any_work(capsys, workspace):
     cases = [
         (["train", "--run-dir", under_a_file, "--env.tasks", "reach-v3"], "train", "choose another --run-dir"),
         (["sft", "--run-dir", under_a_file], "sft", "choose another --run-dir"),
-        (["demos", "--out", under_a_file, "--tasks", "reach-v3"], "demos", "choose another --demos.path"),
-        (["eval", "--policy", policy, "--tasks", "reach-v3", "--out", under_a_file / "r.json"], "eval", "choose another --out"),
-        (["eval", "--policy", policy, "--tasks", "reach-v3", "--video-dir", under_a_file], "eval", "choose another --video-dir"),
+        (["demos", "--demos.path", under_a_file, "--env.tasks", "reach-v3"], "demos", "choose another --demos.path"),
+        (["eval", "--policy", policy, "--env.tasks", "reach-v3", "--out", under_a_file / "r.json"], "eval",
+         "choose another --out"),
+        (["eval", "--policy", policy, "--env.tasks", "reach-v3", "--video-dir", under_a_file], "eval",
+         "choose another --video-dir"),
     ]
     for argv, command, expected in cases:
         line = assert_one_line_error(*run_cli(capsys, *argv)[::2], command)
@@ -230,7 +250,7 @@ def test_unwritable_outputs_fail_before_any_work(capsys, workspace):
 
 
 @pytest.mark.parametrize("argv", [["train", "--iterations", "notanint"], ["train", "--no-such-flag", "1"],
-                                  ["eval", "--episodes", "x"]])
+                                  ["eval", "--eval.episodes", "x"]])
 def test_argument_errors_are_one_line_too(capsys, argv):
     assert_one_line_error(*run_cli(capsys, *argv)[::2], argv[0])
 
@@ -242,8 +262,8 @@ def test_unknown_command(capsys):
 
 def test_eval_writes_its_results(capsys, workspace, tmp_path):
     out = tmp_path / "results" / "eval.json"
-    code, stdout, _ = run_cli(capsys, "eval", "--policy", workspace / "policy", "--tasks", "reach-v3", "--episodes", 3,
-                              "--envs-per-task", 2, "--max-episode-steps", 10, "--out", out)
+    code, stdout, _ = run_cli(capsys, "eval", "--policy", workspace / "policy", "--env.tasks", "reach-v3",
+                              "--eval.episodes", 3, "--env.envs-per-task", 2, "--env.max-episode-steps", 10, "--out", out)
     assert code == 0 and "reach-v3" in stdout
     result = json.loads(out.read_text())
     assert result["tasks"]["reach-v3"]["episodes"] == 3 and result["episodes"] == 3
@@ -253,11 +273,16 @@ def test_policy_configs_of_the_wrong_shape_are_one_line(capsys, workspace, tmp_p
     bad = tmp_path / "bad"
     shutil.copytree(workspace / "policy", bad)
     config = json.loads((bad / "config.json").read_text())
-    for text in (json.dumps([1, 2]), json.dumps({**config, "hidden_dim": "wide"})):
-        (bad / "config.json").write_text(text)
+    cases = [(json.dumps([1, 2]), ""),
+             (json.dumps({**config, "hidden_dim": "wide"}), "policy.hidden_dim must be an integer >= 1, got 'wide'"),
+             (json.dumps({**config, "n_exec": 2.5}), "policy.n_exec must be an integer >= 1, got 2.5"),
+             (json.dumps({**config, "num_inference_steps": 4.5}), "policy.num_inference_steps must be an integer"),
+             (json.dumps({**config, "state_clip": "Infinity"}), "policy.state_clip must be a finite number > 0")]
+    for text, expected in cases:
+        (bad / "config.json").write_text(text.replace('"Infinity"', "Infinity"))
         for argv in (["eval", "--policy", bad], ["train", "--init", bad, "--run-dir", tmp_path / "never"]):
             line = assert_one_line_error(*run_cli(capsys, *argv)[::2], argv[0])
-            assert "corrupt policy checkpoint" in line
+            assert "corrupt policy checkpoint" in line and expected in line, line
     assert not (tmp_path / "never").exists()
 
 
@@ -353,8 +378,23 @@ def test_ray_workers_without_ray_installed_is_one_line(capsys, monkeypatch, tmp_
 
 
 def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
-    cfg, resume = _config_from_argv(["--resume", str(workspace / "run"), "--ray.timeout-s", "30"], "stepnft train", True)
-    assert resume and cfg.ray.timeout_s == 30 and cfg.iterations == 2
-    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", 30,
-                                          "--seed", 3)[::2], "train")
-    assert "takes no other flags than --ray.*" in line
+    """--resume takes the flags of TrainConfig.resumable (where a run computes), refuses any that
+    would change what it computes, and names them."""
+    from stepnft.config import TrainConfig
+
+    assert TrainConfig.resumable == ("ray", "device")
+    cfg, resume = _config_from_argv(["--resume", str(workspace / "run"), "--ray.timeout-s", "30", "--device",
+                                           "cpu"], "stepnft train", True)
+    assert resume and cfg.ray.timeout_s == 30 and cfg.iterations == 2 and cfg.run_dir == str(workspace / "run")
+    cfg, _ = _config_from_argv(["--resume", str(workspace / "run"), "--seed", "0"], "stepnft train", True)
+    assert cfg.seed == 0  # the run's own value: nothing changes
+    for extra, dropped in [(["--ray.timeout-s", "30", "--seed", "3"], "drop: --seed"),
+                           (["--algo.lr", "0.5", "--eval.episodes", "3"], "drop: --algo.lr --eval.episodes"),
+                           (["--algo.name", "ppo"], "drop: --algo.name"),
+                           (["--config", "configs/quickstart.yaml"], "drop: --config configs/quickstart.yaml")]:
+        line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", *extra)[::2], "train")
+        assert "takes no other flags than --ray.* and --device" in line or "own config.yaml" in line
+        assert dropped in line, line
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", "-1")[::2],
+                                 "train")
+    assert "--ray.timeout-s must be a finite number > 0, got -1.0" in line

@@ -103,7 +103,7 @@ def test_cuda_without_cuda_is_one_line_exit_2_and_creates_nothing(command, capsy
     assert len(err.splitlines()) == 1 and "CUDA is not available here" in err and "--device cpu" in err, err
     assert not (tmp_path / "run").exists()
     assert main([command, "--device", "gpu", *where]) == 2
-    assert "device='gpu' is invalid" in capsys.readouterr().err
+    assert "--device must be cpu, cuda or cuda:N, got 'gpu'" in capsys.readouterr().err
 
 
 # --- on a GPU -----------------------------------------------------------------------------------

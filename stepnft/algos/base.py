@@ -14,11 +14,15 @@ resumes it exactly. ``algo.name`` in the config picks the class from ``ALGORITHM
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
+import typing
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Annotated, Any, ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
@@ -27,6 +31,7 @@ from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 from stepnft.rollout.plan import RolloutSpec  # noqa: F401 - what an algorithm tells the collector
+from stepnft.settings import Range, SettingError, Settings
 
 ALGORITHMS: dict[str, str] = {
     "stepnft": "stepnft.algos.stepnft:StepNFT",
@@ -36,52 +41,75 @@ ALGORITHMS: dict[str, str] = {
 """Registered algorithms by ``algo.name`` (imported on first use). A new algorithm adds a line."""
 
 
-@dataclass
-class AlgoConfig:
-    """Settings every algorithm has: its name and the optimizer of the policy."""
+PER_VARIANT = {"per_variant": True}
+"""Field metadata of an :class:`AlgoConfig` setting that a variant of another algorithm does not
+take from the base config (it tells the variants apart, e.g. ``ppo`` from ``ppo-one``, or its
+valid values depend on the algorithm): see ``stepnft.algos.variants.SHARED_FIELDS``."""
 
-    name: str = "stepnft"
+
+@dataclass
+class AlgoConfig(Settings):
+    """Settings every algorithm has: its name, the optimizer of the policy and how rollouts
+    explore. An algorithm's config class sets its own defaults of these in ``defaults``
+    (e.g. ``{"name": "ppo", "noise_level": 0.5}``); the fields stay declared here, once."""
+
+    section: ClassVar[str] = "algo"
+    defaults: ClassVar[dict[str, Any]] = {}
+    """This algorithm's defaults of settings declared in a base class (applied by ``__init_subclass__``)."""
+
+    name: str = field(default="stepnft", metadata=PER_VARIANT)
     """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    lr: float = 1e-4
+    lr: Annotated[float, Range(gt=0)] = 1e-4
     """AdamW learning rate of the policy."""
-    adam_betas: tuple[float, float] = (0.9, 0.95)
+    adam_betas: tuple[Annotated[float, Range(ge=0, lt=1)], Annotated[float, Range(ge=0, lt=1)]] = (0.9, 0.95)
     """AdamW (beta1, beta2)."""
-    adam_eps: float = 1e-8
+    adam_eps: Annotated[float, Range(gt=0)] = 1e-8
     """AdamW epsilon."""
-    weight_decay: float = 0.0
+    weight_decay: Annotated[float, Range(ge=0)] = 0.0
     """AdamW weight decay."""
-    grad_clip: float = 1.0
+    grad_clip: Annotated[float, Range(gt=0)] = 1.0
     """Global gradient-norm clip."""
-    update_epochs: int = 2
+    update_epochs: Annotated[int, Range(ge=1)] = 2
     """Passes over each iteration's samples."""
-    minibatch_size: int = 128
+    minibatch_size: Annotated[int, Range(ge=1)] = 128
     """Samples per gradient step."""
-    nonfinite_patience: int = 20
+    nonfinite_patience: Annotated[int, Range(ge=1)] = 20
     """Optimizer steps in a row whose loss or gradient is not finite (each is skipped and counted
     as ``losses/skipped_nonfinite``) before the run stops with its last checkpoint intact."""
+    noise_level: Annotated[float, Range(ge=0, le=10)] = 0.2
+    """Flow-SDE noise level ``a`` of training rollouts (0: ODE rollouts, π-StepNFT's exploration
+    ablation; PPO and GRPO need > 0: their likelihood needs noise). Default 0.2 for π-StepNFT,
+    0.5 for PPO and GRPO."""
+    sde_steps: Literal["all", "one"] = field(default="all", metadata=PER_VARIANT)
+    """Which denoising steps of a rollout are stochastic: ``all`` (π-StepNFT's paper; PPO and GRPO
+    then sum a call's log-likelihood over the K steps) or ``one`` random step per call, the others
+    ODE (as πRL does; π-StepNFT then needs ``record_steps: one``: the ODE steps carry no
+    exploration to learn from)."""
+    group_size: Annotated[int, Range(ge=1)] = field(default=1, metadata=PER_VARIANT)
+    """Episodes started from the same task and initial state, in groups (1: every episode from
+    its own state; env.envs_per_task must be a multiple of it). GRPO normalises success within
+    them (>= 2, default 4); π-StepNFT balances labels within them with ``label_balance: group``."""
 
-    def check(self) -> dict[str, bool]:
-        """Named validity checks; subclasses add theirs. ``__post_init__`` raises on the first failure."""
-        return {
-            "name": self.name in ALGORITHMS and algorithm_class(self.name).config_class is type(self),
-            "lr": 0 < self.lr < math.inf,
-            "adam_betas": len(self.adam_betas) == 2 and all(0 <= b < 1 for b in self.adam_betas),
-            "adam_eps": 0 < self.adam_eps < math.inf,
-            "weight_decay": 0 <= self.weight_decay < math.inf,
-            "grad_clip": 0 < self.grad_clip < math.inf,
-            "update_epochs": self.update_epochs >= 1,
-            "minibatch_size": self.minibatch_size >= 1,
-            "nonfinite_patience": self.nonfinite_patience >= 1,
-        }
+    def __init_subclass__(cls, **kwargs) -> None:
+        """Turn the subclass's ``defaults`` into field declarations with the inherited type and
+        metadata (so the type, range and docstring stay declared once, here)."""
+        super().__init_subclass__(**kwargs)
+        if "defaults" not in cls.__dict__:
+            return
+        declared = {f.name: f for f in dataclasses.fields(cls.__mro__[1])}
+        hints = typing.get_type_hints(cls.__mro__[1], include_extras=True)
+        cls.__annotations__ = {**{k: hints[k] for k in cls.defaults}, **cls.__dict__.get("__annotations__", {})}
+        for key, value in cls.defaults.items():
+            setattr(cls, key, field(default=value, metadata=declared[key].metadata))
 
-    def __post_init__(self) -> None:
-        self.adam_betas = tuple(self.adam_betas)
-        if self.name not in ALGORITHMS:
-            raise ValueError(f"unknown algorithm {self.name!r}; choose one of: {', '.join(ALGORITHMS)}")
-        bad = [k for k, ok in self.check().items() if not ok]
-        if bad:
-            k = bad[0]
-            raise ValueError(f"algo.{k}={getattr(self, k)!r} is invalid (see `stepnft train --help` for the allowed range)")
+    def check(self) -> None:
+        if self.name != type(self).name or algorithm_class(self.name).config_class is not type(self):
+            raise self.fail(f"{{name}} must be {type(self).name} for {type(self).__name__}", self.name)
+
+    def rollout_spec(self) -> RolloutSpec:
+        """How this algorithm's rollouts sample, and what they record: here the stochastic steps
+        (with one stochastic step per call only that step has a density)."""
+        return RolloutSpec(self.noise_level, self.sde_steps, self.sde_steps, self.group_size)
 
 
 class RunDiverged(RuntimeError):
@@ -135,23 +163,97 @@ def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor
     return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
 
 
+class MinibatchEpochs:
+    """The minibatch loop of every algorithm's update: ``cfg.update_epochs`` passes over the
+    samples, each in a fresh random order, in minibatches of ``cfg.minibatch_size``. It sums the
+    metrics of the minibatches (``measure``) and of the optimizer steps (``step``), remembers an
+    early stop (``stop_if``: looked at before stepping, so no step is taken from a policy already
+    too far) and averages. An update reads::
+
+        epochs = MinibatchEpochs(cfg, guard)
+        for idx in epochs.minibatches(num_samples, generator):
+            if nothing to learn from idx:
+                epochs.skip()
+                continue
+            loss, metrics = ...
+            epochs.measure(metrics)
+            if epochs.stop_if(metrics["approx_kl"] > cfg.target_kl):
+                break                      # ends every pass
+            epochs.step(loss, params, optimizer)
+        metrics = epochs.means() | epochs.counts("kl_stopped")
+    """
+
+    def __init__(self, cfg: AlgoConfig, guard: NonFiniteGuard):
+        self.cfg, self.guard = cfg, guard
+        self.sums: dict[str, float] = defaultdict(float)  # over measured minibatches
+        self.step_sums: dict[str, float] = defaultdict(float)  # over optimizer steps taken
+        self.seen = self.steps = self.skipped = 0
+        self.stopped = False
+
+    def minibatches(self, num_samples: int, generator: torch.Generator | None) -> Iterator[Tensor]:
+        """Index tensors ``[<= minibatch_size]``; each pass draws its ``torch.randperm`` when it starts."""
+        for _ in range(self.cfg.update_epochs):
+            yield from torch.randperm(num_samples, generator=generator).split(self.cfg.minibatch_size)
+
+    def skip(self) -> None:
+        """A minibatch with nothing to learn (``losses/skipped_empty``)."""
+        self.skipped += 1
+
+    def measure(self, metrics: dict[str, float]) -> None:
+        """Add a minibatch's metrics to the averages over minibatches."""
+        for k, v in metrics.items():
+            self.sums[k] += v
+        self.seen += 1
+
+    def stop_if(self, condition: bool) -> bool:
+        """Record the early-stop test of this minibatch; True: skip the rest of the update."""
+        self.stopped = condition
+        return condition
+
+    def step(self, loss: Tensor, params: list[Tensor], optimizer: torch.optim.Optimizer) -> float | None:
+        """One optimizer step through the guard; returns the gradient norm (None: skipped)."""
+        grad_norm = self.guard.step(loss, params, optimizer)
+        if grad_norm is not None:
+            self.step_sums["grad_norm"] += grad_norm
+            self.steps += 1
+        return grad_norm
+
+    def measure_step(self, metrics: dict[str, float]) -> None:
+        """Add metrics averaged over optimizer steps (e.g. PPO's critic loss)."""
+        for k, v in metrics.items():
+            self.step_sums[k] += v
+
+    def means(self) -> dict[str, float]:
+        """Minibatch metrics averaged over measured minibatches, step metrics over steps taken."""
+        return ({k: v / max(self.seen, 1) for k, v in self.sums.items()}
+                | {k: v / max(self.steps, 1) for k, v in self.step_sums.items()})
+
+    def counts(self, stopped_name: str) -> dict[str, float]:
+        """``losses/update_steps``, ``losses/<stopped_name>``, ``losses/skipped_empty``, ``losses/skipped_nonfinite``."""
+        return {"losses/update_steps": float(self.steps), f"losses/{stopped_name}": float(self.stopped),
+                "losses/skipped_empty": float(self.skipped), "losses/skipped_nonfinite": float(self.guard.take_skipped())}
+
+
 class Algorithm(ABC):
-    """One RL fine-tuning method (see the module doc for the loop that drives it)."""
+    """One RL fine-tuning method (see the module doc for the loop that drives it). Every one
+    owns an AdamW optimizer of the policy and a NonFiniteGuard; by default the policy acts."""
 
     name: ClassVar[str]
     config_class: ClassVar[type[AlgoConfig]]
 
     def __init__(self, policy: Policy, cfg: AlgoConfig, iterations: int, generator: torch.Generator):
         self.policy, self.cfg, self.iterations, self.generator = policy, cfg, iterations, generator
+        self.optimizer = make_optimizer(policy.parameters(), cfg)
+        self.guard = NonFiniteGuard(cfg)
 
     @property
-    @abstractmethod
     def rollout(self) -> RolloutSpec:
         """How the collector should sample and record."""
+        return self.cfg.rollout_spec()
 
-    @abstractmethod
     def acting_policy(self) -> Policy:
-        """The policy that acts in training rollouts."""
+        """The policy that acts in training rollouts (default: the trained one, in eval mode)."""
+        return self.policy.eval()
 
     def eval_policy(self) -> Policy:
         """The policy that evaluation and ``policy/`` report (default: the trained one)."""
@@ -165,18 +267,20 @@ class Algorithm(ABC):
         """Called once after each iteration's update (0-based ``iteration``); returns metrics."""
         return {}
 
-    @abstractmethod
     def state_dict(self) -> dict[str, Any]:
-        """Everything the algorithm owns beyond the policy weights (tensors and JSON values)."""
+        """Everything the algorithm owns beyond the policy weights (tensors and JSON values);
+        a subclass adds what it owns besides the optimizer."""
+        return {"optimizer": self.optimizer.state_dict(), "nonfinite_in_a_row": self.guard.in_a_row}
 
-    @abstractmethod
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)
 
 
 def algorithm_class(name: str) -> type[Algorithm]:
     if name not in ALGORITHMS:
-        raise ValueError(f"unknown algorithm {name!r}; choose one of: {', '.join(ALGORITHMS)}")
+        raise SettingError(f"{{name}} must be one of {', '.join(ALGORITHMS)}", "algo", name)
     module, cls = ALGORITHMS[name].split(":")
     return getattr(importlib.import_module(module), cls)
 

@@ -1,5 +1,5 @@
 """GRPO with Flow-SDE (docs/algorithm.md §7): PPO's likelihood and clipped surrogate
-(``stepnft.algos.ppo``) without a critic. The collector starts groups of G episodes of a task
+(``stepnft.algos.likelihood``) without a critic. The collector starts groups of G episodes of a task
 from one initial state (``RolloutSpec.group_size``); every call of an episode gets the episode's
 success normalised within its group. A group whose episodes all succeeded or all failed gives 0.
 """
@@ -7,29 +7,26 @@ success normalised within its group. A group whose episodes all succeeded or all
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer
-from stepnft.algos.ppo import LikelihoodConfig, policy_gradient_update
+from stepnft.algos.base import Algorithm
+from stepnft.algos.likelihood import LikelihoodConfig, policy_gradient_update
 from stepnft.batch import Batch
-from stepnft.policies.base import Policy
 
 
 @dataclass
 class GRPOConfig(LikelihoodConfig):
     """Hyperparameters of GRPO with Flow-SDE. ``minibatch_size`` counts policy calls."""
 
-    name: str = "grpo"
-    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    group_size: int = 4
-    """Episodes per group, started from the same task and initial state (env.envs_per_task must
-    be a multiple of it)."""
+    defaults = {"name": "grpo", "group_size": 4}
 
-    def check(self) -> dict[str, bool]:
-        return super().check() | {"group_size": self.group_size >= 2}
+    def check(self) -> None:
+        super().check()
+        if self.group_size < 2:
+            raise self.fail("{group_size} must be >= 2 for GRPO: it normalises success within each group",
+                            self.group_size)
 
 
 def group_advantages(batch: Batch, eps: float = 1e-6) -> Tensor:
@@ -57,27 +54,9 @@ class GRPO(Algorithm):
     name = "grpo"
     config_class = GRPOConfig
 
-    def __init__(self, policy: Policy, cfg: GRPOConfig, iterations: int, generator: torch.Generator):
-        super().__init__(policy, cfg, iterations, generator)
-        self.optimizer = make_optimizer(policy.parameters(), cfg)
-        self.guard = NonFiniteGuard(cfg)
-
-    @property
-    def rollout(self) -> RolloutSpec:
-        return self.cfg.rollout_spec(self.cfg.group_size)
-
-    def acting_policy(self) -> Policy:
-        return self.policy.eval()
-
     def update(self, batch: Batch) -> dict[str, float]:
         episode_adv = group_advantages(batch)
         self.policy.train()
         metrics = policy_gradient_update(self.policy, self.optimizer, batch, episode_adv[batch.episode], self.cfg,
                                          self.generator, guard=self.guard)
         return metrics | {"charts/informative_episode_frac": float((episode_adv != 0).float().mean())}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])

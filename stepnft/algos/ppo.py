@@ -1,102 +1,42 @@
 """PPO with Flow-SDE, the πRL baseline (docs/algorithm.md §7): the current policy acts with
-Flow-SDE, the denoising chain is part of the decision, so a policy call's log-likelihood is the
-Gaussian log-density of its stochastic denoising step(s); a value head on the observation
-features gives GAE advantages over policy calls from the sparse success reward; the clipped
-surrogate and the value regression update policy and critic. Reads top to bottom: configs, the
-likelihood of a call, GAE, the update (shared with GRPO, ``stepnft.algos.grpo``), the critic, the
+Flow-SDE and a call's log-likelihood is the log-density of its stochastic denoising steps
+(``stepnft.algos.likelihood``, shared with GRPO); a value head on the observation features gives
+GAE advantages over policy calls from the sparse success reward; the clipped surrogate and the
+value regression update policy and critic. Reads top to bottom: config, GAE, the critic, the
 class the training loop drives.
 """
 
 from __future__ import annotations
 
-import math
-from collections import defaultdict
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Annotated, Any
 
 import torch
 from torch import Tensor, nn
 
-from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer, step_velocity
+from stepnft.algos.base import Algorithm, NonFiniteGuard
+from stepnft.algos.likelihood import LikelihoodConfig, policy_gradient_update
 from stepnft.batch import Batch
-from stepnft.devices import to_device
-from stepnft.distributed import data_parallel, shard_forward
-from stepnft.losses import clipped_policy_loss
 from stepnft.policies.base import Policy
-from stepnft.sampling import sde_step_log_prob
-
-
-@dataclass
-class LikelihoodConfig(AlgoConfig):
-    """What the likelihood-based baselines (PPO, GRPO) share: Flow-SDE rollouts of the current
-    policy and the clipped surrogate on the log-density of the stochastic denoising steps."""
-
-    noise_level: float = 0.5
-    """Flow-SDE noise level ``a`` of training rollouts; > 0: the likelihood needs noise (the ODE
-    ablation is π-StepNFT's, ``--algo.name stepnft --algo.noise-level 0``)."""
-    sde_steps: Literal["all", "one"] = "all"
-    """``all``: every denoising step stochastic and recorded, a call's log-likelihood summed over
-    the K steps; ``one`` (πRL): one random step per call stochastic and recorded, the others ODE."""
-    clip_coef: float = 0.2
-    """PPO clip range ε of the ratio ``exp(log π - log π_old)``."""
-    target_kl: float | None = None
-    """Skip the rest of an iteration's updates once a minibatch's approx-KL exceeds this (looked
-    at before stepping); None: off."""
-
-    def check(self) -> dict[str, bool]:
-        return super().check() | {
-            "noise_level": self.noise_level > 0,
-            "sde_steps": self.sde_steps in ("all", "one"),
-            "clip_coef": self.clip_coef > 0,
-            "target_kl": self.target_kl is None or self.target_kl > 0,
-        }
-
-    def rollout_spec(self, group_size: int = 1) -> RolloutSpec:
-        # With one stochastic step per call only that step has a density: record it alone.
-        return RolloutSpec(self.noise_level, self.sde_steps, self.sde_steps, group_size)
+from stepnft.settings import Range
 
 
 @dataclass
 class PPOConfig(LikelihoodConfig):
     """Hyperparameters of PPO with Flow-SDE (πRL). ``minibatch_size`` counts policy calls."""
 
-    name: str = "ppo"
-    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    gamma: float = 0.99
+    defaults = {"name": "ppo"}
+
+    gamma: Annotated[float, Range(ge=0, le=1)] = 0.99
     """Discount per policy call."""
-    gae_lambda: float = 0.95
+    gae_lambda: Annotated[float, Range(ge=0, le=1)] = 0.95
     """GAE λ."""
     norm_adv: bool = True
     """Normalise the advantages over the iteration's calls (mean 0, std 1)."""
-    critic_lr: float = 1e-3
+    critic_lr: Annotated[float, Range(gt=0)] = 1e-3
     """Adam learning rate of the value head (its own optimizer)."""
-    critic_hidden_dim: int = 256
+    critic_hidden_dim: Annotated[int, Range(ge=1)] = 256
     """Width of the value head's two hidden layers."""
-
-    def check(self) -> dict[str, bool]:
-        return super().check() | {
-            "gamma": 0 <= self.gamma <= 1,
-            "gae_lambda": 0 <= self.gae_lambda <= 1,
-            "critic_lr": self.critic_lr > 0,
-            "critic_hidden_dim": self.critic_hidden_dim >= 1,
-        }
-
-
-# --- the likelihood of a policy call ------------------------------------------------------------
-def call_step_rows(batch: Batch) -> Tensor:
-    """``[C, k]``: the rows of the recorded denoising steps of every policy call (k per call)."""
-    counts = torch.bincount(batch.call, minlength=batch.num_calls)
-    if batch.num_calls == 0 or bool((counts != counts[0]).any()) or int(counts[0]) == 0:
-        raise ValueError("every policy call needs the same number (>= 1) of recorded denoising steps")
-    return torch.argsort(batch.call, stable=True).view(batch.num_calls, int(counts[0]))
-
-
-def steps_log_prob(batch: Batch, rows: Tensor, v: Tensor, noise_level: float) -> Tensor:
-    """``[R]`` log-density of recorded steps ``rows`` under velocity ``v`` ``[R, H, A]``, over
-    the chunk positions their call executed (on ``v``'s device)."""
-    x_next, x_t, t, dt, mask = to_device((batch.x_next[rows], batch.x_t[rows], batch.t[rows], batch.dt[rows],
-                                          batch.mask[batch.call[rows]]), v.device)
-    return sde_step_log_prob(x_next, x_t, v, t, dt, noise_level, mask)
 
 
 # --- advantages ---------------------------------------------------------------------------------
@@ -121,71 +61,6 @@ def gae(reward: Tensor, value: Tensor, done: Tensor, episode: Tensor, gamma: flo
         following[e[n]] = (adv[n], v[n])
     advantages = torch.tensor(adv, dtype=value.dtype)
     return advantages, advantages + value
-
-
-# --- the update ---------------------------------------------------------------------------------
-def policy_gradient_update(
-    policy: Policy,
-    optimizer: torch.optim.Optimizer,
-    batch: Batch,
-    advantages: Tensor,
-    cfg: LikelihoodConfig,
-    generator: torch.Generator | None = None,
-    extra_step: Callable[[Tensor], dict[str, float]] | None = None,
-    guard: NonFiniteGuard | None = None,
-) -> dict[str, float]:
-    """``cfg.update_epochs`` epochs of clipped-surrogate steps over minibatches of policy calls,
-    ``advantages`` ``[C]`` per call. ``log π_old`` comes from the recorded ``v_old`` (the acting
-    policy is the policy itself, so no extra forward pass). ``extra_step(calls)`` runs after each
-    policy step on the same calls (PPO's critic). Steps with a non-finite loss or gradient are
-    skipped (``guard``). Returns metrics averaged over minibatches. Under ``torchrun`` the
-    processes share each minibatch (``stepnft.distributed``)."""
-    guard = guard or NonFiniteGuard(cfg)
-    learner = data_parallel(policy)
-    rows = call_step_rows(batch)
-    per_call = rows.shape[1]
-    with torch.no_grad():
-        old_log_prob = steps_log_prob(batch, rows.flatten(), batch.v_old[rows.flatten()],
-                                      cfg.noise_level).view_as(rows).sum(dim=1)
-    sums: dict[str, float] = defaultdict(float)
-    seen = steps = skipped = 0
-    stopped = False
-    for _ in range(cfg.update_epochs):
-        for calls in torch.randperm(batch.num_calls, generator=generator).split(cfg.minibatch_size):
-            if not bool(advantages[calls].any()):
-                skipped += 1  # nothing to learn (e.g. GRPO's uniform groups); Adam would still move
-                continue
-            step_rows = rows[calls].flatten()
-            v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), step_rows)
-            log_prob = steps_log_prob(batch, step_rows, v, cfg.noise_level).view(len(calls), per_call).sum(dim=1)
-            loss, metrics = clipped_policy_loss(log_prob, *to_device((old_log_prob[calls], advantages[calls]), v.device),
-                                                cfg.clip_coef)
-            for k, val in metrics.items():
-                sums[k] += val
-            seen += 1
-            stopped = cfg.target_kl is not None and metrics["approx_kl"] > cfg.target_kl
-            if stopped:
-                break
-            grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
-            if grad_norm is None:
-                continue
-            sums["grad_norm"] += grad_norm
-            steps += 1
-            if extra_step is not None:
-                for k, val in extra_step(calls).items():
-                    sums[k] += val
-        if stopped:
-            break
-    # The same names every iteration, NaN (logged as null) when every minibatch was skipped.
-    out = {f"losses/{k}": math.nan for k in ("policy_loss", "approx_kl", "old_approx_kl", "clipfrac", "ratio_max")}
-    out |= {f"losses/{k}": v / max(seen, 1) for k, v in sums.items()}
-    out |= {f"losses/{k}": sums[k] / max(steps, 1) for k in ("grad_norm", "value_loss") if k in sums}
-    out |= {"losses/update_steps": float(steps), "losses/kl_stopped": float(stopped),
-            "losses/skipped_empty": float(skipped), "losses/skipped_nonfinite": float(guard.take_skipped()),
-            "losses/log_prob": float(old_log_prob.mean()),
-            "charts/advantage_mean": float(advantages.mean()),
-            "charts/advantage_std": float(advantages.std()) if len(advantages) > 1 else 0.0}
-    return out
 
 
 # --- the critic ---------------------------------------------------------------------------------
@@ -214,24 +89,15 @@ class PPO(Algorithm):
 
     name = "ppo"
     config_class = PPOConfig
-
-    def __init__(self, policy: Policy, cfg: PPOConfig, iterations: int, generator: torch.Generator):
-        super().__init__(policy, cfg, iterations, generator)
-        self.optimizer = make_optimizer(policy.parameters(), cfg)
-        self.guard, self.critic_guard = NonFiniteGuard(cfg), NonFiniteGuard(cfg)
-        self.critic: ValueHead | None = None  # built on the first batch, when the feature size is known
-        self.critic_optimizer: torch.optim.Optimizer | None = None
+    # The critic is built on the first batch, when the feature size is known.
+    critic: ValueHead | None = None
+    critic_optimizer: torch.optim.Optimizer | None = None
+    critic_guard: NonFiniteGuard | None = None
 
     def _build_critic(self, in_dim: int) -> None:
         self.critic = ValueHead(in_dim, self.cfg.critic_hidden_dim).to(self.policy.device)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.critic_lr)
-
-    @property
-    def rollout(self) -> RolloutSpec:
-        return self.cfg.rollout_spec()
-
-    def acting_policy(self) -> Policy:
-        return self.policy.eval()
+        self.critic_guard = NonFiniteGuard(self.cfg)
 
     def update(self, batch: Batch) -> dict[str, float]:
         cfg = self.cfg
@@ -258,13 +124,13 @@ class PPO(Algorithm):
         return metrics | raw | {"losses/explained_variance": explained, "charts/value_mean": float(values.mean())}
 
     def state_dict(self) -> dict[str, Any]:
-        state: dict[str, Any] = {"optimizer": self.optimizer.state_dict()}
+        state = super().state_dict()
         if self.critic is not None:
             state |= {"critic": self.critic.state_dict(), "critic_optimizer": self.critic_optimizer.state_dict()}
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
+        super().load_state_dict(state)
         if "critic" in state:
             self._build_critic(state["critic"]["net.0.weight"].shape[1])
             self.critic.load_state_dict(state["critic"])

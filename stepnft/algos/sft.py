@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Annotated, Callable, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -26,42 +26,33 @@ from stepnft.losses import flow_matching_loss
 from stepnft.policies.base import Policy, load_policy, make_policy
 from stepnft.policies.vision import random_shift
 from stepnft.sampling import flow_matching_pair, sample_flow_time
+from stepnft.settings import Range, Settings
 
 
 @dataclass
-class SFTConfig:
+class SFTConfig(Settings):
     """Hyperparameters of flow-matching behaviour cloning."""
 
-    steps: int = 3000
+    section: ClassVar[str] = "sft"
+
+    steps: Annotated[int, Range(ge=0)] = 3000
     """Gradient steps."""
-    batch_size: int = 256
+    batch_size: Annotated[int, Range(ge=1)] = 256
     """Chunks per gradient step."""
-    lr: float = 3e-4
+    lr: Annotated[float, Range(gt=0)] = 3e-4
     """AdamW learning rate."""
-    adam_betas: tuple[float, float] = (0.9, 0.999)
+    adam_betas: tuple[Annotated[float, Range(ge=0, lt=1)], Annotated[float, Range(ge=0, lt=1)]] = (0.9, 0.999)
     """AdamW (beta1, beta2)."""
-    adam_eps: float = 1e-8
+    adam_eps: Annotated[float, Range(gt=0)] = 1e-8
     """AdamW epsilon."""
-    weight_decay: float = 1e-4
+    weight_decay: Annotated[float, Range(ge=0)] = 1e-4
     """AdamW weight decay."""
     time_law: Literal["uniform", "beta"] = "uniform"
     """Law of the flow time t during training: ``uniform`` or ``beta`` (π0's)."""
-    image_shift: int = 4
+    image_shift: Annotated[int, Range(ge=0)] = 4
     """Random-shift augmentation of camera images (pixels, at the policy's image size): each
     image is padded by replication and cropped back at a random offset (0: off). SFT only: in
     RL updates v_old was computed on the unshifted views."""
-
-    def __post_init__(self) -> None:
-        self.adam_betas = tuple(self.adam_betas)
-        if self.steps < 0 or self.batch_size < 1 or not self.lr > 0:
-            raise ValueError("sft.steps must be >= 0, sft.batch_size >= 1 and sft.lr > 0")
-        if not (len(self.adam_betas) == 2 and all(0 <= b < 1 for b in self.adam_betas) and self.adam_eps > 0
-                and self.weight_decay >= 0):
-            raise ValueError("sft.adam_betas must be two values in [0, 1), sft.adam_eps > 0 and sft.weight_decay >= 0")
-        if self.image_shift < 0:
-            raise ValueError(f"sft.image_shift must be >= 0, got {self.image_shift}")
-        if self.time_law not in ("uniform", "beta"):
-            raise ValueError(f"sft.time_law must be 'uniform' or 'beta', got {self.time_law!r}")
 
 
 def sft_train(

@@ -7,57 +7,49 @@ the training loop drives.
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, NonFiniteGuard, RolloutSpec, make_optimizer, step_velocity
+from stepnft.algos.base import AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, step_velocity
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_update, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
+from stepnft.settings import Range
 
 
 @dataclass
 class StepNFTConfig(AlgoConfig):
-    """Hyperparameters of π-StepNFT. Defaults are the paper's reference values unless noted;
-    configs/paper.yaml switches every beyond-paper option (docs/algorithm.md §10) off."""
+    """Hyperparameters of π-StepNFT (besides the shared ones of ``AlgoConfig``, whose defaults are
+    π-StepNFT's). Defaults are the paper's reference values unless noted; configs/paper.yaml
+    switches every beyond-paper option (docs/algorithm.md §10) off."""
 
-    name: str = "stepnft"
-    """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    noise_level: float = 0.2
-    """Flow-SDE noise level ``a`` of training rollouts, in [0, 10] (0: ODE rollouts, the
-    exploration ablation)."""
     record_steps: Literal["one", "all"] = "all"
     """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond the
     paper, ``all`` K of them: K times the training signal for the same simulator steps.
     Default ``all``: measured better (docs/experiments.md)."""
-    sde_steps: Literal["all", "one"] = "all"
-    """Which denoising steps of a rollout are stochastic: ``all`` (paper) or, beyond the paper,
-    ``one``: only the recorded step, the others ODE (as πRL does). Needs ``record_steps: one``:
-    the ODE steps carry no exploration to learn from."""
-    beta: float = 1.0
+    beta: Annotated[float, Range(gt=0)] = 1.0
     """Trust factor β of the mirrored candidates ``v_old ± β Δc``."""
-    beta_dpo: float = 1.0
+    beta_dpo: Annotated[float, Range(gt=0)] = 1.0
     """Temperature of the ranking softplus."""
-    max_drift: float | None = 0.5
+    max_drift: Annotated[float | None, Range(gt=0)] = 0.5
     """Cap on ``||v - v_old||`` per chunk position inside the loss (None: no clip)."""
-    kl_beta: float = 1e-4
+    kl_beta: Annotated[float, Range(ge=0)] = 1e-4
     """Weight of ``mean((v - v_old)^2)``."""
     target: Literal["next", "x0"] = "next"
     """``next``: step-wise target ``x_{t-dt}`` (paper); ``x0``: final-action ablation."""
     form: Literal["rank", "wmse"] = "rank"
     """``rank``: contrastive ranking (paper); ``wmse``: DiffusionNFT weighted-MSE ablation."""
-    ema_base: float = 0.1
+    ema_base: Annotated[float, Range(ge=0, le=1)] = 0.1
     """EMA decay at iteration 0."""
-    ema_target: float = 0.995
+    ema_target: Annotated[float, Range(ge=0, le=1)] = 0.995
     """EMA decay at the end of the horizon."""
-    ema_horizon: int | None = None
+    ema_horizon: Annotated[int | None, Range(ge=1)] = None
     """Iterations over which the decay rises (None: the run's number of iterations)."""
     eval_ema: bool = False
     """Evaluate (and save as ``policy/``) the EMA rollout policy instead of the trained one
@@ -69,9 +61,6 @@ class StepNFTConfig(AlgoConfig):
     ``group``: the same within each group of ``group_size`` episodes started from one initial
     state (outcomes then compare actions, not how hard the initial state was).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
-    group_size: int = 1
-    """Episodes started from the same task and initial state, in groups (1: every episode from
-    its own state); with ``label_balance: group`` labels are balanced within each group."""
     episode_weighting: bool = True
     """Beyond the paper: every episode carries the same total weight, however many policy calls
     it made (failures run to the step cap and would otherwise dominate the batch: a failing
@@ -87,46 +76,28 @@ class StepNFTConfig(AlgoConfig):
     simulator's shaped reward (a per-call credit without a critic; ``call_progress``). Needs a
     simulator whose reward measures progress (MetaWorld's does); PPO and GRPO here use the
     sparse success only."""
-    progress_mix: float = 0.5
+    progress_mix: Annotated[float, Range(ge=0, le=1)] = 0.5
     """With ``labels: progress``: the share of the label from progress, in [0, 1]; a call's label
     is ``(1 - mix) * outcome + mix * tanh(progress / its task's std)``, in [-1, 1]."""
-    progress_lambda: float = 0.8
+    progress_lambda: Annotated[float, Range(ge=0, lt=1)] = 0.8
     """With ``labels: progress``: how far ahead a call's progress looks, in [0, 1): the reward
     level after the call is ``(1 - λ) Σ_l λ^l r_{c+l}`` over the episode's following calls (the
     last level held after its end), compared with the level of the call before."""
-    drift_limit: float | None = None
+    drift_limit: Annotated[float | None, Range(gt=0)] = None
     """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
 
-    def check(self) -> dict[str, bool]:
-        finite = lambda x: x is not None and math.isfinite(x)  # noqa: E731
-        return super().check() | {
-            "noise_level": finite(self.noise_level) and 0 <= self.noise_level <= 10,
-            "beta": finite(self.beta) and self.beta > 0,
-            "beta_dpo": finite(self.beta_dpo) and self.beta_dpo > 0,
-            "max_drift": self.max_drift is None or (finite(self.max_drift) and self.max_drift > 0),
-            "kl_beta": finite(self.kl_beta) and self.kl_beta >= 0,
-            "ema_horizon": self.ema_horizon is None or self.ema_horizon >= 1,
-            "drift_limit": self.drift_limit is None or (finite(self.drift_limit) and self.drift_limit > 0),
-            "ema_base": 0 <= self.ema_base <= 1,
-            "ema_target": 0 <= self.ema_target <= 1,
-            "target": self.target in ("next", "x0"),
-            "form": self.form in ("rank", "wmse"),
-            "label_balance": self.label_balance in ("none", "global", "task", "group"),
-            "group_size": self.group_size >= 1 and (self.label_balance != "group" or self.group_size > 1),
-            "sde_steps": self.sde_steps in ("all", "one"),
-            "record_steps": self.record_steps in ("one", "all"),
-            "labels": self.labels in ("episode", "progress"),
-            "progress_mix": finite(self.progress_mix) and 0 <= self.progress_mix <= 1,
-            "progress_lambda": finite(self.progress_lambda) and 0 <= self.progress_lambda < 1,
-        }
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    def check(self) -> None:
+        super().check()
         if self.sde_steps == "one" and self.record_steps == "all":
-            raise ValueError("algo.sde_steps=one needs algo.record_steps=one: with one stochastic step per call the "
-                             "other recorded steps are deterministic ODE steps with nothing to rank")
+            raise self.fail("{sde_steps}=one needs {record_steps}=one: with one stochastic step per call the other "
+                            "recorded steps are deterministic ODE steps with nothing to rank")
+        if self.label_balance == "group" and self.group_size < 2:
+            raise self.fail("{label_balance}=group needs {group_size} >= 2", self.group_size)
+
+    def rollout_spec(self) -> RolloutSpec:
+        return RolloutSpec(self.noise_level, self.sde_steps, self.record_steps, self.group_size)
 
 
 # --- sample weights ---------------------------------------------------------------------------
@@ -240,47 +211,33 @@ def stepnft_update(
     learner = data_parallel(policy)
     y = step_labels(batch, cfg)
     weights = sample_weights(batch, y, cfg)
-    sums: dict[str, float] = defaultdict(float)
-    seen = steps = skipped = 0
-    stopped = False
-    for _ in range(cfg.update_epochs):
-        for idx in torch.randperm(batch.num_steps, generator=generator).split(cfg.minibatch_size):
-            w = None if weights is None else weights[idx]
-            if w is not None and not bool(w.sum() > 0):
-                skipped += 1  # nothing to learn here; an Adam step on zero gradients would still move
-                continue
-            v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), idx)
-            calls = batch.call[idx]
-            v_old, x_t, x_next, t, dt, label, mask, actions, w = to_device(
-                (batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], y[idx],
-                 batch.mask[calls], batch.actions[calls], w), v.device)
-            loss, metrics = stepnft_loss(
-                v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
-                max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
-                actions=actions, weight=w,
-            )
-            if math.isfinite(metrics["loss"]):
-                for k, val in metrics.items():
-                    sums[k] += val
-                seen += 1
-            # The drift guard looks before it steps: no update is taken from a policy already too
-            # far from v_old, so the drift stays near the limit however large the learning rate.
-            stopped = cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit
-            if stopped:
-                break
-            grad_norm = guard.step(loss, list(policy.parameters()), optimizer)
-            if grad_norm is not None:
-                sums["grad_norm"] += grad_norm
-                steps += 1
-        if stopped:
+    epochs = MinibatchEpochs(cfg, guard)
+    for idx in epochs.minibatches(batch.num_steps, generator):
+        w = None if weights is None else weights[idx]
+        if w is not None and not bool(w.sum() > 0):
+            epochs.skip()  # nothing to learn here; an Adam step on zero gradients would still move
+            continue
+        v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), idx)
+        calls = batch.call[idx]
+        v_old, x_t, x_next, t, dt, label, mask, actions, w = to_device(
+            (batch.v_old[idx], batch.x_t[idx], batch.x_next[idx], batch.t[idx], batch.dt[idx], y[idx],
+             batch.mask[calls], batch.actions[calls], w), v.device)
+        loss, metrics = stepnft_loss(
+            v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
+            max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
+            actions=actions, weight=w,
+        )
+        if math.isfinite(metrics["loss"]):
+            epochs.measure(metrics)
+        # The drift guard looks before it steps: no update is taken from a policy already too
+        # far from v_old, so the drift stays near the limit however large the learning rate.
+        if epochs.stop_if(cfg.drift_limit is not None and metrics["delta_v_norm"] > cfg.drift_limit):
             break
-    means = {k: v / max(seen, 1) for k, v in sums.items()}
-    means["grad_norm"] = sums["grad_norm"] / max(steps, 1)
+        epochs.step(loss, list(policy.parameters()), optimizer)
+    means = epochs.means()
+    means.setdefault("grad_norm", 0.0)  # logged every iteration, 0 when no step was taken
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
-    out |= {f"losses/{k}": v for k, v in means.items()}
-    out |= {"losses/update_steps": float(steps), "losses/drift_stopped": float(stopped),
-            "losses/skipped_empty": float(skipped), "losses/skipped_nonfinite": float(guard.take_skipped())}
-    return out
+    return out | {f"losses/{k}": v for k, v in means.items()} | epochs.counts("drift_stopped")
 
 
 # --- the algorithm ----------------------------------------------------------------------------
@@ -293,13 +250,7 @@ class StepNFT(Algorithm):
     def __init__(self, policy: Policy, cfg: StepNFTConfig, iterations: int, generator: torch.Generator):
         super().__init__(policy, cfg, iterations, generator)
         self.ema = make_ema_copy(policy)
-        self.optimizer = make_optimizer(policy.parameters(), cfg)
-        self.guard = NonFiniteGuard(cfg)
         self.ema_horizon = cfg.ema_horizon or iterations
-
-    @property
-    def rollout(self) -> RolloutSpec:
-        return RolloutSpec(self.cfg.noise_level, self.cfg.sde_steps, self.cfg.record_steps, self.cfg.group_size)
 
     def acting_policy(self) -> Policy:
         return self.ema.eval()
@@ -317,10 +268,8 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"ema": self.ema.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "nonfinite_in_a_row": self.guard.in_a_row}
+        return super().state_dict() | {"ema": self.ema.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
         self.ema.load_state_dict(state["ema"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.guard.in_a_row = state.get("nonfinite_in_a_row", 0)

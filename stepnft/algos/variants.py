@@ -57,9 +57,10 @@ VARIANTS: dict[str, Variant] = {
 }
 """Every variant ``stepnft compare`` knows. A new one adds a line."""
 
-SHARED_FIELDS = tuple(f.name for f in dataclasses.fields(AlgoConfig) if f.name != "name") + ("noise_level",)
-"""What a variant of another algorithm keeps from the base config: the optimizer settings and
-the exploration noise, so every method starts from the same choices."""
+SHARED_FIELDS = tuple(f.name for f in dataclasses.fields(AlgoConfig) if not f.metadata.get("per_variant"))
+"""What a variant of another algorithm keeps from the base config: the settings every algorithm
+has (``AlgoConfig``: the optimizer, the exploration noise), so every method starts from the same
+choices; those marked ``PER_VARIANT`` (the name, ``sde_steps``, ``group_size``) keep the variant's."""
 
 
 def variant_config(name: str, base: AlgoConfig) -> AlgoConfig:

@@ -47,7 +47,7 @@ class BanditChunkEnv(gym.Env):
         self._context: np.ndarray | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        if options and options.get("idle"):  # sit this wave out (see stepnft.envs.base)
+        if options and options.get("idle"):  # sit a batch step out (see stepnft.envs.base)
             if self._context is None:
                 self._context = np.zeros(CONTEXT_DIM, dtype=np.float32)
             self._steps, self._all_within, self._success, self._done = 0, False, False, True

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stepnft.names import split_names
+
 SUITES: dict[str, tuple[str, ...]] = {
     "ind": (),
     "vision": ("table_color", "floor_color", "object_color", "lighting", "camera_pose"),
@@ -88,10 +90,8 @@ HELDOUT_DISTRACTORS = (
 def expand(names: str | Sequence[str]) -> tuple[str, ...]:
     """Perturbation names from names and suite names (``vision`` = its five); a ValueError
     names the valid ones."""
-    if isinstance(names, str):
-        names = [n.strip() for n in names.split(",") if n.strip()]
     out: list[str] = []
-    for name in names:
+    for name in split_names(names):
         if name in SUITES:
             out += [n for n in SUITES[name] if n not in out]
         elif name in FAMILY:

@@ -1,13 +1,13 @@
 """PPO and GRPO with Flow-SDE on hand-built batches: GAE, group normalisation, the likelihood of
-a call, the direction of an update, checkpoints, config checks."""
+a call (``stepnft.algos.likelihood``), the direction of an update, checkpoints, config checks."""
 
 import pytest
 import torch
 
 from stepnft.algos.base import make_algorithm
 from stepnft.algos.grpo import GRPOConfig, group_advantages
-from stepnft.algos.ppo import (PPOConfig, call_step_rows, gae, policy_gradient_update, steps_log_prob,
-                               success_rewards)
+from stepnft.algos.likelihood import call_step_rows, policy_gradient_update, steps_log_prob
+from stepnft.algos.ppo import PPOConfig, gae, success_rewards
 from stepnft.batch import Batch
 from stepnft.checkpoint import flatten_state, unflatten_state
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
@@ -145,11 +145,12 @@ def test_rollout_specs_and_config_checks():
     assert PPOConfig(sde_steps="one").rollout_spec().record_steps == "one"
     spec = make_algorithm(GRPOConfig(group_size=4), make_batch([0], [True])[0], 1, torch.Generator()).rollout
     assert (spec.group_size, spec.stochastic_steps, spec.record_steps) == (4, "all", "all")
-    with pytest.raises(ValueError, match="algo.noise_level"):
+    assert make_algorithm(PPOConfig(), make_batch([0], [True])[0], 1, torch.Generator()).rollout.group_size == 1
+    with pytest.raises(ValueError, match="algo.noise_level must be > 0 for PPO and GRPO"):
         PPOConfig(noise_level=0.0)  # no noise, no likelihood: the ODE ablation is π-StepNFT's
-    with pytest.raises(ValueError, match="algo.group_size"):
+    with pytest.raises(ValueError, match="algo.group_size must be >= 2 for GRPO"):
         GRPOConfig(group_size=1)
-    with pytest.raises(ValueError, match="algo.gae_lambda"):
+    with pytest.raises(ValueError, match=r"algo.gae_lambda must be a finite number in \[0, 1\], got 1.5"):
         PPOConfig(gae_lambda=1.5)
 
 

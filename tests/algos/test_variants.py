@@ -34,6 +34,10 @@ def test_baselines_keep_the_shared_settings_only():
     back = variant_config("stepnft", ppo)
     assert isinstance(back, StepNFTConfig) and back.lr == 2e-4 and back.label_balance == StepNFTConfig().label_balance
     assert "noise_level" in SHARED_FIELDS and "label_balance" not in SHARED_FIELDS
+    # What tells variants apart, or is valid per algorithm, keeps the variant's own defaults.
+    assert not {"name", "sde_steps", "group_size"} & set(SHARED_FIELDS)
+    grouped = dataclasses.replace(BASE, sde_steps="one", record_steps="one", group_size=2)
+    assert (variant_config("ppo", grouped).sde_steps, variant_config("grpo", grouped).group_size) == ("all", 4)
 
 
 def test_paper_variant_is_configs_paper_yaml():

@@ -165,7 +165,7 @@ def test_names_and_config_checks():
     from stepnft.config import EnvConfig
 
     assert EnvConfig(randomize=["semantic,friction"]).randomize == ["paraphrase", "distractor", "friction"]
-    with pytest.raises(ValueError, match="set --env.cameras"):
+    with pytest.raises(ValueError, match="set env.cameras"):
         EnvConfig(randomize=["lighting"])
     with pytest.raises(ValueError, match="semantic perturbations need MetaWorld"):
         from stepnft.envs.bandit import Bandit

@@ -29,6 +29,7 @@ finally:
 
 from stepnft.envs.base import Expert, Simulator
 from stepnft.envs.libero.suites import SUITE_MAX_STEPS, SUITES, all_tasks, suite_tasks
+from stepnft.names import split_names
 
 __all__ = ["LIBERO", "SUITES", "SUITE_MAX_STEPS", "suite_tasks"]
 
@@ -56,8 +57,7 @@ class LIBERO(Simulator):
 
     def validate_tasks(self, tasks: str | Sequence[str]) -> list[str]:
         """Task names or suite names (each expands to its tasks, in LIBERO's order)."""
-        if isinstance(tasks, str):
-            tasks = [task.strip() for task in tasks.split(",") if task.strip()]
+        tasks = split_names(tasks)
         if not tasks:
             raise ValueError(f"no LIBERO task given: name a suite ({', '.join(SUITES)}) or tasks of one")
         known = all_tasks()

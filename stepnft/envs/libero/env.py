@@ -123,7 +123,7 @@ class LiberoChunkEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Starts an episode from initial state ``seed % 50`` (see the module doc).
-        ``options={"idle": True}``: sit this wave out (see ``stepnft.envs.base``)."""
+        ``options={"idle": True}``: sit a batch step out (see ``stepnft.envs.base``)."""
         options = options or {}
         if options.get("idle"):
             if self._obs is None:

@@ -167,7 +167,7 @@ class MetaWorldChunkEnv(gym.Env):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Starts an episode; with `seed`, its initial state depends only on (task, seed).
-        ``options={"idle": True}``: sit this wave out (see ``stepnft.envs.base``)."""
+        ``options={"idle": True}``: sit a batch step out (see ``stepnft.envs.base``)."""
         if options and options.get("idle"):
             if self._state is None:
                 self._state = np.zeros(OBS_DIM, dtype=np.float32)

@@ -3,76 +3,68 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
-from typing import ClassVar
+from typing import Annotated, ClassVar
+
+from stepnft.settings import Range, Settings
 
 
 @dataclass
-class FlowPolicyConfig:
+class FlowPolicyConfig(Settings):
     """Sizes and sampling settings of a :class:`FlowPolicy`; saved as ``config.json``."""
 
     type: ClassVar[str] = "flow"
+    section: ClassVar[str] = "policy"
 
-    state_dim: int = 39
+    state_dim: Annotated[int, Range(ge=1)] = 39
     """Proprioceptive / state observation size (MetaWorld: 39)."""
-    lang_dim: int = 384
+    lang_dim: Annotated[int, Range(ge=0)] = 384
     """Size of the frozen instruction embedding (0: no language input)."""
-    lang_proj_dim: int = 64
+    lang_proj_dim: Annotated[int, Range(ge=1)] = 64
     """The instruction embedding is projected to this size before the velocity MLP."""
     language_encoder: str = "default"
     """Frozen sentence encoder of the instructions: 'default' (packaged all-MiniLM-L6-v2) or a
     local sentence-transformers folder. Saved with the policy, so evaluation embeds alike."""
-    action_dim: int = 4
+    action_dim: Annotated[int, Range(ge=1)] = 4
     """Action dimensions A."""
-    horizon: int = 4
+    horizon: Annotated[int, Range(ge=1)] = 4
     """Chunk length H: actions predicted per policy call."""
-    n_exec: int = 4
+    n_exec: Annotated[int, Range(ge=1)] = 4
     """Actions of the chunk executed before the policy is called again (<= horizon)."""
-    hidden_dim: int = 256
+    hidden_dim: Annotated[int, Range(ge=1)] = 256
     """Width of the velocity MLP."""
-    num_layers: int = 3
+    num_layers: Annotated[int, Range(ge=1)] = 3
     """Hidden layers of the velocity MLP."""
-    time_embed_dim: int = 64
-    """Sinusoidal embedding size of the flow time t."""
-    num_inference_steps: int = 4
+    time_embed_dim: Annotated[int, Range(ge=2)] = 64
+    """Sinusoidal embedding size of the flow time t (even: sine and cosine pairs)."""
+    num_inference_steps: Annotated[int, Range(ge=1)] = 4
     """Denoising steps K of the samplers."""
-    state_clip: float = 5.0
+    state_clip: Annotated[float, Range(gt=0)] = 5.0
     """Normalised state features are clamped to [-state_clip, state_clip]."""
-    state_min_std: float = 0.05
+    state_min_std: Annotated[float, Range(gt=0)] = 0.05
     """Floor on the per-dimension state std used for normalisation (few demos give tiny spreads)."""
     cameras: list[str] = field(default_factory=list)
     """Camera views the policy sees, in order (empty: a state policy); must equal env.cameras.
     A camera policy encodes each view with a small CNN (``stepnft.policies.vision``)."""
-    image_size: int = 64
+    image_size: Annotated[int, Range(ge=16, le=256)] = 64
     """Side of the square images the CNN takes (the processor resizes the env's images to it)."""
-    image_channels: int = 32
+    image_channels: Annotated[int, Range(ge=1)] = 32
     """Channels of each of the CNN's four convolutions (shared by every view)."""
-    image_features: int = 64
+    image_features: Annotated[int, Range(ge=1)] = 64
     """Features per view out of the CNN, fused with the state and instruction features."""
 
-    def __post_init__(self) -> None:
-        if isinstance(self.cameras, str):
-            self.cameras = [self.cameras]
-        self.cameras = [c.strip() for item in self.cameras for c in item.split(",") if c.strip()]
-        if self.cameras and not (16 <= self.image_size <= 256 and self.image_channels >= 1 and self.image_features >= 1):
-            raise ValueError("policy.image_size must be in 16..256, policy.image_channels and image_features >= 1")
-        for name in ("state_dim", "action_dim", "horizon", "n_exec", "hidden_dim", "num_layers", "num_inference_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"policy.{name} must be >= 1, got {getattr(self, name)}")
+    def check(self) -> None:
         if self.n_exec > self.horizon:
-            raise ValueError(f"policy.n_exec ({self.n_exec}) must be <= policy.horizon ({self.horizon})")
-        if self.time_embed_dim < 2 or self.time_embed_dim % 2:
-            raise ValueError(f"policy.time_embed_dim must be even and >= 2 (sine and cosine pairs), got {self.time_embed_dim}")
-        if self.lang_dim < 0 or (self.lang_dim > 0 and self.lang_proj_dim < 1):
-            raise ValueError(f"policy.lang_dim must be >= 0 and policy.lang_proj_dim >= 1, got {self.lang_dim}, {self.lang_proj_dim}")
-        if not (0 < self.state_min_std < float("inf") and 0 < self.state_clip < float("inf")):
-            raise ValueError(f"policy.state_min_std and policy.state_clip must be finite and > 0, got "
-                             f"{self.state_min_std}, {self.state_clip}")
+            raise self.fail(f"{{n_exec}} ({self.n_exec}) must be <= {{horizon}} ({self.horizon})")
+        if self.time_embed_dim % 2:
+            raise self.fail("{time_embed_dim} must be even (sine and cosine pairs)", self.time_embed_dim)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, data: dict) -> "FlowPolicyConfig":
+        """The config saved in a policy's ``config.json`` (without ``type``); an unknown key or a
+        bad value is a ValueError naming it."""
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known
         if unknown:

@@ -1,0 +1,111 @@
+"""What the likelihood-based baselines, PPO (``stepnft.algos.ppo``) and GRPO
+(``stepnft.algos.grpo``), share (docs/algorithm.md §7): the current policy acts with Flow-SDE, the
+denoising chain is part of the decision, so a policy call's log-likelihood is the Gaussian
+log-density of its stochastic denoising step(s); the clipped surrogate on it, with advantages per
+call, updates the policy. Reads top to bottom: config, the likelihood of a call, the update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Callable
+
+import torch
+from torch import Tensor
+
+from stepnft.algos.base import AlgoConfig, MinibatchEpochs, NonFiniteGuard, step_velocity
+from stepnft.batch import Batch
+from stepnft.devices import to_device
+from stepnft.distributed import data_parallel, shard_forward
+from stepnft.losses import clipped_policy_loss
+from stepnft.policies.base import Policy
+from stepnft.sampling import sde_step_log_prob
+from stepnft.settings import Range
+
+
+@dataclass
+class LikelihoodConfig(AlgoConfig):
+    """What PPO and GRPO share besides ``AlgoConfig``: the clipped surrogate on the log-density of
+    the stochastic denoising steps. ``minibatch_size`` counts policy calls."""
+
+    defaults = {"noise_level": 0.5}
+
+    clip_coef: Annotated[float, Range(gt=0)] = 0.2
+    """PPO clip range ε of the ratio ``exp(log π - log π_old)``."""
+    target_kl: Annotated[float | None, Range(gt=0)] = None
+    """Skip the rest of an iteration's updates once a minibatch's approx-KL exceeds this (looked
+    at before stepping); None: off."""
+
+    def check(self) -> None:
+        super().check()
+        if self.noise_level == 0:
+            raise self.fail("{noise_level} must be > 0 for PPO and GRPO: their likelihood needs noise (the ODE "
+                            "ablation is π-StepNFT's)", self.noise_level)
+
+
+# --- the likelihood of a policy call ------------------------------------------------------------
+def call_step_rows(batch: Batch) -> Tensor:
+    """``[C, k]``: the rows of the recorded denoising steps of every policy call (k per call)."""
+    counts = torch.bincount(batch.call, minlength=batch.num_calls)
+    if batch.num_calls == 0 or bool((counts != counts[0]).any()) or int(counts[0]) == 0:
+        raise ValueError("every policy call needs the same number (>= 1) of recorded denoising steps")
+    return torch.argsort(batch.call, stable=True).view(batch.num_calls, int(counts[0]))
+
+
+def steps_log_prob(batch: Batch, rows: Tensor, v: Tensor, noise_level: float) -> Tensor:
+    """``[R]`` log-density of recorded steps ``rows`` under velocity ``v`` ``[R, H, A]``, over
+    the chunk positions their call executed (on ``v``'s device)."""
+    x_next, x_t, t, dt, mask = to_device((batch.x_next[rows], batch.x_t[rows], batch.t[rows], batch.dt[rows],
+                                          batch.mask[batch.call[rows]]), v.device)
+    return sde_step_log_prob(x_next, x_t, v, t, dt, noise_level, mask)
+
+
+# --- the update ---------------------------------------------------------------------------------
+POLICY_METRICS = ("policy_loss", "approx_kl", "old_approx_kl", "clipfrac", "ratio_max")
+"""The clipped surrogate's metrics (``losses/...``), logged every iteration: NaN (null in
+metrics.jsonl) when every minibatch was skipped."""
+
+
+def policy_gradient_update(
+    policy: Policy,
+    optimizer: torch.optim.Optimizer,
+    batch: Batch,
+    advantages: Tensor,
+    cfg: LikelihoodConfig,
+    generator: torch.Generator | None = None,
+    extra_step: Callable[[Tensor], dict[str, float]] | None = None,
+    guard: NonFiniteGuard | None = None,
+) -> dict[str, float]:
+    """``cfg.update_epochs`` epochs of clipped-surrogate steps over minibatches of policy calls,
+    ``advantages`` ``[C]`` per call. ``log π_old`` comes from the recorded ``v_old`` (the acting
+    policy is the policy itself, so no extra forward pass). ``extra_step(calls)`` runs after each
+    policy step on the same calls (PPO's critic); its metrics are averaged over steps. Steps with a
+    non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over minibatches.
+    Under ``torchrun`` the processes share each minibatch (``stepnft.distributed``)."""
+    guard = guard or NonFiniteGuard(cfg)
+    learner = data_parallel(policy)
+    rows = call_step_rows(batch)
+    per_call = rows.shape[1]
+    with torch.no_grad():
+        old_log_prob = steps_log_prob(batch, rows.flatten(), batch.v_old[rows.flatten()],
+                                      cfg.noise_level).view_as(rows).sum(dim=1)
+    epochs = MinibatchEpochs(cfg, guard)
+    for calls in epochs.minibatches(batch.num_calls, generator):
+        if not bool(advantages[calls].any()):
+            epochs.skip()  # nothing to learn (e.g. GRPO's uniform groups); Adam would still move
+            continue
+        step_rows = rows[calls].flatten()
+        v = shard_forward(lambda part: step_velocity(learner, policy, batch, part), step_rows)
+        log_prob = steps_log_prob(batch, step_rows, v, cfg.noise_level).view(len(calls), per_call).sum(dim=1)
+        loss, metrics = clipped_policy_loss(log_prob, *to_device((old_log_prob[calls], advantages[calls]), v.device),
+                                            cfg.clip_coef)
+        epochs.measure(metrics)
+        if epochs.stop_if(cfg.target_kl is not None and metrics["approx_kl"] > cfg.target_kl):
+            break
+        if epochs.step(loss, list(policy.parameters()), optimizer) is not None and extra_step is not None:
+            epochs.measure_step(extra_step(calls))
+    out = {f"losses/{k}": float("nan") for k in POLICY_METRICS}
+    out |= {f"losses/{k}": v for k, v in epochs.means().items()} | epochs.counts("kl_stopped")
+    return out | {"losses/log_prob": float(old_log_prob.mean()),
+                  "charts/advantage_mean": float(advantages.mean()),
+                  "charts/advantage_std": float(advantages.std()) if len(advantages) > 1 else 0.0}

@@ -1,0 +1,224 @@
+"""Settings declared once, checked from their declaration.
+
+Every config dataclass (the run's sections in ``stepnft.config``, the algorithm configs, SFT's,
+the policy's ``config.json``, the command configs) derives from :class:`Settings`. A field's type
+says what it accepts; ``Annotated`` adds a range::
+
+    lr: Annotated[float, Range(gt=0)] = 1e-4
+    \"\"\"AdamW learning rate of the policy.\"\"\"
+
+One checker, :func:`check_fields`, reads these types whenever a config is built: from Python,
+a YAML file, flags or a saved policy's ``config.json``.
+
+==================  ===========================================================================
+declared type       accepted value
+==================  ===========================================================================
+``int``             an int (not a bool, not a float)
+``float``           an int or a float, finite (stored as a float)
+``bool``            True or False
+``str``             a string
+``Literal[...]``    one of its values: the choices are never listed again
+``X | None``        None or an X
+``list[str]``       names: a string or strings, each comma-separated (``stepnft.names``)
+``tuple[X, Y]``     a sequence of as many values, each checked (stored as a tuple)
+``dict[str, X]``    a mapping of strings to Xs
+a dataclass         an instance of it (a nested section)
+==================  ===========================================================================
+
+``Range(gt=, ge=, lt=, le=)`` bounds a number; ``Check(predicate, description)`` states any other
+rule of one value. Rules between fields are a config's :meth:`Settings.check`. A bad value is a
+:class:`SettingError` that names the setting the way the user wrote it: ``algo.lr`` (YAML) or
+``--algo.lr`` (flags). This module is a low layer: it imports nothing of stepnft but names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import re
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Literal, Union
+
+from stepnft.names import split_names
+
+
+@dataclass(frozen=True)
+class Range:
+    """Bounds of a number: ``gt < x``, ``ge <= x``, ``x < lt``, ``x <= le`` (None: unbounded)."""
+
+    gt: float | None = None
+    ge: float | None = None
+    lt: float | None = None
+    le: float | None = None
+
+    def accepts(self, x: float) -> bool:
+        return ((self.gt is None or x > self.gt) and (self.ge is None or x >= self.ge)
+                and (self.lt is None or x < self.lt) and (self.le is None or x <= self.le))
+
+    def __str__(self) -> str:
+        low = f"[{self.ge:g}" if self.ge is not None else f"({self.gt:g}" if self.gt is not None else None
+        high = f"{self.le:g}]" if self.le is not None else f"{self.lt:g})" if self.lt is not None else None
+        if low and high:
+            return f"in {low}, {high}"
+        if low:
+            return f"{'>=' if low[0] == '[' else '>'} {low[1:]}"
+        return f"{'<=' if high[-1] == ']' else '<'} {high[:-1]}" if high else ""
+
+
+@dataclass(frozen=True)
+class Check:
+    """A rule of one value that is not a range: ``predicate(value)`` must hold; ``description``
+    says what is allowed (it replaces the type's own description in messages)."""
+
+    predicate: Callable[[Any], bool]
+    description: str
+
+    def accepts(self, value: Any) -> bool:
+        return self.predicate(value)
+
+
+class SettingError(ValueError):
+    """A bad setting. ``template`` names settings as ``{key}``, relative to ``section``;
+    ``str()`` writes them as YAML keys (``algo.lr``), :meth:`as_flags` as flags (``--algo.lr``).
+    ``got``, when given, is appended as ``, got VALUE``."""
+
+    _KEY = re.compile(r"\{([a-z][a-z0-9_.]*)\}")
+    _NOTHING = object()
+
+    def __init__(self, template: str, section: str = "", got: Any = _NOTHING):
+        self.template, self.section = template, section
+        self.got = "" if got is self._NOTHING else f", got {got!r}"
+        super().__init__(self._render(lambda key: key))
+
+    def _render(self, spell: Callable[[str], str]) -> str:
+        def full(match: re.Match) -> str:
+            return spell(f"{self.section}.{match[1]}" if self.section else match[1])
+
+        return self._KEY.sub(full, self.template) + self.got
+
+    def as_flags(self) -> str:
+        """The message with every setting named by its command-line flag."""
+        return self._render(lambda key: "--" + key.replace("_", "-"))
+
+
+class Settings:
+    """Base of every config dataclass: built -> every field checked against its declared type
+    (:func:`check_fields`) -> :meth:`check`, the rules between fields."""
+
+    section: ClassVar[str] = ""
+    """Where the fields sit in a run's config (``algo`` for ``algo.lr``); "" at the top."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        self.check()
+
+    def check(self) -> None:
+        """Rules between fields (a subclass adds its own; raise :class:`SettingError`)."""
+
+    def fail(self, template: str, got: Any = SettingError._NOTHING) -> SettingError:
+        """A :class:`SettingError` about this config's fields (``{lr}`` names ``algo.lr``)."""
+        return SettingError(template, self.section, got)
+
+
+def check_fields(obj) -> None:
+    """Check every field of dataclass ``obj`` against its declared type (module doc) and store
+    the normalised values; a :class:`SettingError` names the first bad one."""
+    hints = _type_hints(type(obj))
+    section = getattr(obj, "section", "")
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        try:
+            checked = _checked(value, hints[f.name])
+        except _Mismatch:
+            raise SettingError(f"{{{f.name}}} must be {describe(hints[f.name])}", section, value) from None
+        object.__setattr__(obj, f.name, checked)
+
+
+def describe(hint) -> str:
+    """What a declared type accepts, in words (``a finite number > 0``)."""
+    hint, rules = _unwrap(hint)
+    checks = [r for r in rules if isinstance(r, Check)]
+    if checks:
+        return checks[0].description
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    bounds = "".join(f" {r}" for r in rules if isinstance(r, Range))
+    if origin in (Union, types.UnionType):
+        arms = [describe(a) for a in args if a is not type(None)]
+        return " or ".join(arms) + bounds + (" or None" if type(None) in args else "")
+    if origin is Literal:
+        return "one of " + ", ".join(map(str, args))
+    if origin is list:
+        return "a list of names" if args[0] is str else f"a list of values, each {describe(args[0])}"
+    if origin is tuple:
+        parts = [describe(a) for a in args]
+        return f"{len(parts)} values, each {parts[0]}" if len(set(parts)) == 1 else f"({', '.join(parts)})"
+    if origin is dict:
+        return f"a mapping of names to values, each {describe(args[1])}"
+    words = {int: "an integer", float: "a finite number", bool: "true or false", str: "a string"}
+    return words.get(hint, f"a {getattr(hint, '__name__', hint)}") + bounds
+
+
+class _Mismatch(Exception):
+    """A value that does not fit its declared type (reported for the whole field)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _type_hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls, include_extras=True)
+
+
+def _unwrap(hint) -> tuple[Any, tuple]:
+    """``Annotated[T, *rules]`` -> ``(T, rules)``; any other type -> ``(type, ())``."""
+    if typing.get_origin(hint) is typing.Annotated:
+        return hint.__origin__, hint.__metadata__
+    return hint, ()
+
+
+def _checked(value, hint):
+    """``value`` normalised to ``hint`` (see the module doc); raises _Mismatch."""
+    hint, rules = _unwrap(hint)
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        (arm,) = [a for a in args if a is not type(None)]
+        value = _checked(value, arm)
+    elif origin is Literal:
+        _require(any(type(value) is type(a) and value == a for a in args))
+    elif origin is list and args[0] is str:
+        _require(isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)))
+        value = split_names(value)
+    elif origin is list:
+        _require(isinstance(value, (list, tuple)))
+        value = [_checked(v, args[0]) for v in value]
+    elif origin is tuple:
+        _require(isinstance(value, (list, tuple)) and len(value) == len(args))
+        value = tuple(_checked(v, a) for v, a in zip(value, args))
+    elif origin is dict:
+        _require(isinstance(value, dict))
+        value = {_checked(k, args[0]): _checked(v, args[1]) for k, v in value.items()}
+    else:
+        value = _checked_scalar(value, hint)
+    _require(all(rule.accepts(value) for rule in rules))
+    return value
+
+
+def _checked_scalar(value, hint):
+    if hint is float:
+        _require(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value))
+        return float(value)
+    if hint is int:
+        _require(isinstance(value, int) and not isinstance(value, bool))
+    elif hint in (bool, str) or dataclasses.is_dataclass(hint):
+        _require(isinstance(value, hint))
+    else:
+        raise TypeError(f"stepnft.settings cannot check settings of type {hint!r}")
+    return value
+
+
+def _require(condition: bool) -> None:
+    if not condition:
+        raise _Mismatch
