@@ -144,11 +144,21 @@ def main(argv=None) -> dict:
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="simulator worker processes (env.num_workers)")
     p.add_argument("--iterations", type=int, default=2, help="training collections per setting")
     p.add_argument("--eval-episodes", type=int, default=20, help="evaluation episodes per task per setting")
+    p.add_argument("--lanes", type=int, default=None,
+                   help="measure with this many lanes instead of the package's (1: no overlap of inference and "
+                        "simulation); patches stepnft.envs.base.LANES for the measurement")
+    p.add_argument("--envs-per-task", type=int, default=None, help="sub-envs per task instead of the run's")
     p.add_argument("--out", default="benchmarks/results/loop_throughput")
     args = p.parse_args(argv)
+    if args.lanes is not None:
+        import stepnft.envs.base
+
+        stepnft.envs.base.LANES = args.lanes
     torch.set_num_threads(1)
     run = Path(args.run)
     cfg = load_config(run / "config.yaml")
+    if args.envs_per_task is not None:
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, envs_per_task=args.envs_per_task))
     rows = []
     for which in args.policies:
         for workers in args.workers:
@@ -166,7 +176,10 @@ def main(argv=None) -> dict:
                 print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
                       f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f}", flush=True)
     summary = json.loads((run / "summary.json").read_text())
+    from stepnft.envs import base
+
     record = {"command": " ".join([os.path.relpath(sys.executable), *sys.argv]), "commit": commit(), "args": vars(args),
+              "lanes": base.LANES, "envs_per_task": cfg.env.envs_per_task,
               "cameras": list(cfg.env.cameras), "rows": rows, "run_time_s": summary.get("time_s"),
               "run_env_steps": summary.get("env_steps"), "load_average_1min": os.getloadavg()[0],
               "cores": len(os.sched_getaffinity(0))}
@@ -179,6 +192,7 @@ def write_report(record: dict, out: Path) -> None:
     (out / "loop_throughput.json").write_text(json.dumps(record, indent=2))
     lines = ["# Loop throughput against the simulator alone", "",
              f"Command: `{record['command']}` (commit {record['commit']}); cameras: {record['cameras'] or 'none'}; "
+             f"{record['lanes']} lanes, {record['envs_per_task']} sub-envs per task; "
              f"{record['cores']} cores, load average {record['load_average_1min']:.2f} when it ended.", "",
              "| policy | workers | part | env steps | loop env steps/s | simulator alone env steps/s | ratio |",
              "|---|---|---|---|---|---|---|"]

@@ -3,7 +3,7 @@
 
 Continuous collection: every sub-env plays episodes of its task back to back, a new one as
 soon as its last one ended, until the plan is done (the plan: ``stepnft.rollout.plan``). The
-vector env's sub-envs form two *lanes* (``stepnft.envs.base.LANES``) that take turns: while
+vector env's sub-envs form two *lanes* (``venv.lanes``, ``stepnft.envs.base.LANES``) that take turns: while
 the workers step one lane, this process computes the next actions of the other. Each lane
 plays a fixed share of the plan (episode ``j`` of a task goes to the lane of the task's sub-env
 ``j mod n``), its sub-envs taking the lane's episodes of their task in plan order as they come
@@ -30,7 +30,6 @@ from torch import Tensor
 
 from stepnft.batch import Batch
 from stepnft.devices import to_device
-from stepnft.envs.base import LANES
 from stepnft.policies.base import Policy
 from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
@@ -131,12 +130,13 @@ class _Play:
         self.call_episode: list[int] = []  # plan row of every call, in call order
         self.call_info: list[list] = []  # [steps executed, reward, done] of every call
         self.steps: list[dict[str, Tensor]] = []
-        lane_of = plan_lanes(plan, self.task_ids, np.asarray(venv.lanes))
+        lanes = np.asarray(venv.lanes)
+        lane_of = plan_lanes(plan, self.task_ids, lanes)
         self.lanes = []
-        for lane in range(LANES):
+        for lane in range(int(lanes.max()) + 1):
             queue = {k: collections.deque(np.flatnonzero((lane_of == lane) & (plan.task == k)).tolist())
                      for k in range(len(venv.tasks))}
-            self.lanes.append(_Lane(np.flatnonzero(np.asarray(venv.lanes) == lane), queue))
+            self.lanes.append(_Lane(np.flatnonzero(lanes == lane), queue))
 
     def run(self) -> Batch:
         self.policy.eval()
