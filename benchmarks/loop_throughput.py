@@ -9,7 +9,9 @@ simulator work is replayed in as many plain processes as there were workers, eac
 share of the sub-envs (split evenly by env steps) with no policy and no pipes. The ratio of the
 two wall-clocks is the loop's efficiency: 1.0 means the loop costs nothing beyond the simulator.
 
-Prints a table and writes ``OUT/loop_throughput.{json,md,png}`` with the command and commit.
+Each setting is measured in ``--repeats`` turns (the loop, then its replay), and the median ratio
+counts: the machine's slow spells fall on both sides of a turn alike. Prints a table and writes
+``OUT/loop_throughput.{json,md,png}`` with the command and commit.
 The run's ``summary.json`` phase times (demonstrations, SFT, rollouts, updates, validation, test
 evaluation) are copied into the table when the run recorded them.
 
@@ -129,6 +131,34 @@ def replay(cfg, n_exec: int, ops: list[list], processes: int) -> dict:
     return {"seconds": max(s for s, _ in results), "env_steps": sum(n for _, n in results)}
 
 
+def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
+    """``args.repeats`` turns of (the loop, then the same simulator work alone) for one policy
+    and worker count; the median ratio of each part (training, evaluation) over the turns, so
+    that a slow spell of a shared machine falls on both sides of a turn alike."""
+    n_exec = load_policy(run / which).config.n_exec
+    turns: dict[str, list[dict]] = {"train": [], "eval": []}
+    for _ in range(args.repeats):
+        loop = play(cfg, run, which, workers, args.iterations, args.eval_episodes)
+        for part in turns:
+            sim = replay(cfg, n_exec, loop[part]["ops"], max(1, workers))
+            assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
+            turns[part].append({"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"],
+                                "simulator_s": sim["seconds"], "ratio": sim["seconds"] / loop[part]["seconds"]})
+    rows = []
+    for part, measured in turns.items():
+        ratios = [m["ratio"] for m in measured]
+        middle = measured[int(np.argsort(ratios)[len(ratios) // 2])]
+        row = {"policy": which, "workers": workers, "part": part, "env_steps": middle["env_steps"],
+               "loop_steps_per_s": middle["env_steps"] / middle["loop_s"],
+               "simulator_steps_per_s": middle["env_steps"] / middle["simulator_s"],
+               "ratio": float(np.median(ratios)), "ratios": ratios}
+        rows.append(row)
+        print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
+              f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f} "
+              f"(turns: {', '.join(f'{r:.2f}' for r in ratios)})", flush=True)
+    return rows
+
+
 def commit() -> str:
     root = Path(__file__).resolve().parents[1]
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root).stdout.strip()
@@ -144,6 +174,7 @@ def main(argv=None) -> dict:
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="simulator worker processes (env.num_workers)")
     p.add_argument("--iterations", type=int, default=2, help="training collections per setting")
     p.add_argument("--eval-episodes", type=int, default=20, help="evaluation episodes per task per setting")
+    p.add_argument("--repeats", type=int, default=3, help="turns of (loop, simulator alone) per setting; the median counts")
     p.add_argument("--lanes", type=int, default=None,
                    help="measure with this many lanes instead of the package's (1: no overlap of inference and "
                         "simulation); patches stepnft.envs.base.LANES for the measurement")
@@ -162,19 +193,7 @@ def main(argv=None) -> dict:
     rows = []
     for which in args.policies:
         for workers in args.workers:
-            loop = play(cfg, run, which, workers, args.iterations, args.eval_episodes)
-            n_exec = load_policy(run / which).config.n_exec
-            for part in ("train", "eval"):
-                sim = replay(cfg, n_exec, loop[part]["ops"], max(1, workers))
-                assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
-                row = {"policy": which, "workers": workers, "part": part, "env_steps": loop[part]["env_steps"],
-                       "loop_s": loop[part]["seconds"], "simulator_s": sim["seconds"],
-                       "loop_steps_per_s": loop[part]["env_steps"] / loop[part]["seconds"],
-                       "simulator_steps_per_s": sim["env_steps"] / sim["seconds"]}
-                row["ratio"] = row["simulator_s"] / row["loop_s"]
-                rows.append(row)
-                print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
-                      f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f}", flush=True)
+            rows += measure(cfg, run, which, workers, args)
     summary = json.loads((run / "summary.json").read_text())
     from stepnft.envs import base
 
@@ -194,10 +213,11 @@ def write_report(record: dict, out: Path) -> None:
              f"Command: `{record['command']}` (commit {record['commit']}); cameras: {record['cameras'] or 'none'}; "
              f"{record['lanes']} lanes, {record['envs_per_task']} sub-envs per task; "
              f"{record['cores']} cores, load average {record['load_average_1min']:.2f} when it ended.", "",
-             "| policy | workers | part | env steps | loop env steps/s | simulator alone env steps/s | ratio |",
-             "|---|---|---|---|---|---|---|"]
+             "| policy | workers | part | env steps | loop env steps/s | simulator alone env steps/s | ratio (median) | turns |",
+             "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['policy']} | {r['workers']} | {r['part']} | {r['env_steps']:,} | {r['loop_steps_per_s']:,.0f} | "
-              f"{r['simulator_steps_per_s']:,.0f} | {r['ratio']:.2f} |" for r in record["rows"]]
+              f"{r['simulator_steps_per_s']:,.0f} | {r['ratio']:.2f} | {', '.join(f'{x:.2f}' for x in r['ratios'])} |"
+              for r in record["rows"]]
     if record.get("run_time_s"):
         total = sum(record["run_time_s"].values())
         lines += ["", f"The run's own wall-clock by phase ({total / 60:.1f} min, {record['run_env_steps']:,} RL env steps):",

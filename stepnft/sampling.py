@@ -170,26 +170,23 @@ def sample_chunk(
     x = _randn(shape, generator).to(device)
     step = _randint(num_steps, batch, generator).to(device)
     dt = torch.full((batch,), 1.0 / num_steps, device=device)
-    rec = {k: torch.zeros(shape, device=device) for k in ("x_t", "x_next", "v_old")}
-    t_rec = torch.zeros(batch, device=device)
     xs, vs = [x], []
     for k in range(num_steps):
         t = torch.full((batch,), 1.0 - k / num_steps, device=device)
         v = velocity_fn(x, t)
-        here = _col(step == k)
         mean, std = sde_step_mean_std(x, v, t, dt, noise_level)
         if stochastic_steps == "one":  # the other steps are plain Euler steps
+            here = _col(step == k)
             ode_mean, _ = sde_step_mean_std(x, v, t, dt, 0.0)
             mean, std = torch.where(here, mean, ode_mean), std * here.float()
-        x_next = mean + std * _randn(shape, generator).to(device)
-        rec["x_t"] = torch.where(here, x, rec["x_t"])
-        rec["x_next"] = torch.where(here, x_next, rec["x_next"])
-        rec["v_old"] = torch.where(here, v, rec["v_old"])
-        t_rec = torch.where(step == k, t, t_rec)
-        x = x_next
-        if keep_path:
-            xs.append(x)
-            vs.append(v)
+        x = mean + std * _randn(shape, generator).to(device)
+        xs.append(x)
+        vs.append(v)
+    # The recorded step of each sample, gathered from the path (one index per sample).
+    path_x, path_v = torch.stack(xs, dim=1), torch.stack(vs, dim=1)
+    rows = torch.arange(batch, device=device)
+    rec = {"x_t": path_x[rows, step], "x_next": path_x[rows, step + 1], "v_old": path_v[rows, step]}
     if keep_path:
-        rec["path_x"], rec["path_v"] = torch.stack(xs, dim=1), torch.stack(vs, dim=1)
-    return ChunkSample(actions=x, step=step, t=t_rec, dt=dt, **rec)
+        rec["path_x"], rec["path_v"] = path_x, path_v
+    grid = torch.tensor([1.0 - k / num_steps for k in range(num_steps)], device=device)  # the t of each step
+    return ChunkSample(actions=x, step=step, t=grid[step], dt=dt, **rec)
