@@ -4,10 +4,11 @@ For each policy of the run (its SFT start ``sft_policy/`` and its trained ``poli
 worker count, this plays what the run plays: training iterations (the run's task allocation,
 episodes per iteration, Flow-SDE noise and recorded denoising steps; early termination on) and
 an evaluation (ODE, fixed initial states), through the collector and the run's vector env. Every
-reset (with its seed) and every chunk of actions sent to each sub-env is logged; then exactly that
-simulator work is replayed in as many plain processes as there were workers, each stepping its
-share of the sub-envs (split evenly by env steps) with no policy and no pipes. The ratio of the
-two wall-clocks is the loop's efficiency: 1.0 means the loop costs nothing beyond the simulator.
+episode's reset seed and the chunks of actions it stepped are taken from the recorded batch;
+then exactly that simulator work is replayed in as many plain processes as there were workers,
+each stepping its share of the episodes (split evenly by env steps) with no policy and no
+pipes. The ratio of the two wall-clocks is the loop's efficiency: 1.0 means the loop costs
+nothing beyond the simulator.
 
 Each setting is measured in ``--repeats`` turns (the loop, then its replay), and the median ratio
 counts: the machine's slow spells fall on both sides of a turn alike. Prints a table and writes
@@ -37,29 +38,28 @@ import torch
 from stepnft.algos.base import make_algorithm
 from stepnft.config import load_config
 from stepnft.envs import env_options, get_simulator, make_vec_env
-from stepnft.evaluate import evaluate_policy
 from stepnft.policies.base import load_policy
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
+from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
 
-def logged(venv) -> list[list[tuple[str, object]]]:
-    """Wrap ``venv.send_ops`` to log every op per sub-env; returns the (live) log."""
-    log: list[list[tuple[str, object]]] = [[] for _ in range(venv.num_envs)]
-    send = venv.send_ops
-
-    def send_ops(ops):
-        for i, op, arg in ops:
-            log[i].append((op, np.array(arg, copy=True) if op == "step" else arg))
-        return send(ops)
-
-    venv.send_ops = send_ops
-    return log
+def episode_ops(batch, policy, num_tasks: int) -> list[tuple[int, int, list[np.ndarray]]]:
+    """What the simulator did for each episode of a recorded batch: its task, reset seed and the
+    action chunks it stepped (the policy's executed positions, as the collector sent them)."""
+    n_exec = policy.config.n_exec
+    chunks = policy.env_actions(batch.actions[:, :n_exec]).clamp(-1.0, 1.0).numpy()
+    calls = [[] for _ in range(batch.num_episodes)]
+    for c, e in enumerate(batch.episode.tolist()):
+        calls[e].append(chunks[c])
+    return [(int(batch.episode_task[e]), int(batch.episode_seed[e]), calls[e]) for e in range(batch.num_episodes)]
 
 
 def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episodes: int) -> dict:
     """The loop's wall-clock for ``iterations`` training collections and one evaluation of
-    ``which`` policy with ``workers`` simulator processes; and the ops it sent."""
+    ``which`` policy with ``workers`` simulator processes; and each episode's simulator work.
+    The evaluation plays the fixed plan of ``evaluate_policy`` with its one recorded step per
+    call (the replay needs the actions; recording costs the loop a little)."""
     policy = load_policy(run / which)
     env_cfg = dataclasses.replace(cfg.env, num_workers=workers)
     venv = make_vec_env(env_cfg, policy.config.n_exec, cfg.seed)
@@ -70,64 +70,59 @@ def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episode
     start = summary["tasks"]
     allocator.success[:] = [start[t]["before" if which == "sft_policy" else "after"]["success"] for t in venv.tasks]
     spec = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator()).rollout
+    tasks = len(venv.tasks)
     try:
-        collector.play(policy, collector.plan(len(venv.tasks), spec), spec.noise_level)  # warm-up: first resets
-        ops = logged(venv)
+        collector.play(policy, collector.plan(tasks, spec), spec.noise_level)  # warm-up: first resets
         t0 = time.perf_counter()
-        train_steps = 0
+        train = []
         for _ in range(iterations):
             batch = collector.collect(policy, cfg.episodes_per_iteration, spec,
                                       allocator.allocate(cfg.episodes_per_iteration, spec.group_size))
             allocator.update(batch)
-            train_steps += batch.env_steps
+            train.append(batch)
         t1 = time.perf_counter()
-        train_ops = [list(o) for o in ops]
-        for o in ops:
-            o.clear()
-        result = evaluate_policy(policy, collector, eval_episodes, cfg.eval.seed)
+        evaluation = collector.play(policy, EpisodePlan.fixed(tasks, eval_episodes, cfg.eval.seed), 0.0,
+                                    record=RolloutSpec(0.0))
         t2 = time.perf_counter()
-        eval_ops = [list(o) for o in ops]
     finally:
         collector.close()
-    return {"train": {"seconds": t1 - t0, "env_steps": train_steps, "ops": train_ops},
-            "eval": {"seconds": t2 - t1, "env_steps": result["env_steps"], "ops": eval_ops}}
+    return {"train": {"seconds": t1 - t0, "env_steps": sum(b.env_steps for b in train),
+                      "episodes": [op for b in train for op in episode_ops(b, policy, tasks)]},
+            "eval": {"seconds": t2 - t1, "env_steps": evaluation.env_steps,
+                     "episodes": episode_ops(evaluation, policy, tasks)}}
 
 
 def _replay_part(args) -> tuple[float, int]:
-    env_cfg, n_exec, layout, part, barrier = args
+    env_cfg, n_exec, part, barrier = args
     sim = get_simulator(env_cfg.name)
-    envs = [sim.make_env(layout[i][0], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
-                         terminate_on_success=env_cfg.terminate_on_success, seed=layout[i][1], **env_options(env_cfg))
-            for i, _ in part]
+    envs = {task: sim.make_env(env_cfg.tasks[task], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
+                               terminate_on_success=env_cfg.terminate_on_success, **env_options(env_cfg))
+            for task in {task for task, _, _ in part}}
     barrier.wait()
     start, steps = time.perf_counter(), 0
-    for env, (_, ops) in zip(envs, part):
-        for op, arg in ops:
-            if op == "reset":
-                env.reset(seed=arg)
-            else:
-                steps += env.step(arg)[4]["steps"]
+    for task, seed, chunks in part:
+        env = envs[task]
+        env.reset(seed=seed)
+        for chunk in chunks:
+            steps += env.step(chunk)[4]["steps"]
     seconds = time.perf_counter() - start
-    for env in envs:
+    for env in envs.values():
         env.close()
     return seconds, steps
 
 
-def replay(cfg, n_exec: int, ops: list[list], processes: int) -> dict:
-    """The same simulator work in ``processes`` plain processes (sub-envs split evenly by steps)."""
-    task_ids = get_simulator(cfg.env.name).vec_env_layout(cfg.env.tasks, cfg.env.envs_per_task)["task_ids"]
-    layout = [(cfg.env.tasks[k], 0) for k in task_ids]  # every reset is seeded: the env's own seed is unused
-    cost = [sum(len(a) if op == "step" else 1 for op, a in o) for o in ops]
+def replay(cfg, n_exec: int, episodes: list, processes: int) -> dict:
+    """The same simulator work in ``processes`` plain processes (episodes split evenly by steps)."""
     parts, loads = [[] for _ in range(processes)], [0] * processes
-    for i in sorted(range(len(ops)), key=lambda i: -cost[i]):
+    for episode in sorted(episodes, key=lambda e: -len(e[2])):
         w = int(np.argmin(loads))
-        parts[w].append((i, ops[i]))
-        loads[w] += cost[i]
+        parts[w].append(episode)
+        loads[w] += len(episode[2])
     context = multiprocessing.get_context("forkserver")
     with context.Manager() as manager:
         barrier = manager.Barrier(processes)
         with context.Pool(processes) as pool:
-            results = pool.map(_replay_part, [(cfg.env, n_exec, layout, part, barrier) for part in parts])
+            results = pool.map(_replay_part, [(cfg.env, n_exec, part, barrier) for part in parts])
     return {"seconds": max(s for s, _ in results), "env_steps": sum(n for _, n in results)}
 
 
@@ -140,7 +135,7 @@ def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
     for _ in range(args.repeats):
         loop = play(cfg, run, which, workers, args.iterations, args.eval_episodes)
         for part in turns:
-            sim = replay(cfg, n_exec, loop[part]["ops"], max(1, workers))
+            sim = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers))
             assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
             turns[part].append({"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"],
                                 "simulator_s": sim["seconds"], "ratio": sim["seconds"] / loop[part]["seconds"]})

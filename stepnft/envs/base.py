@@ -21,11 +21,13 @@ Chunk env contract (one task):
     its RNG alone and is ended at once (truncated, ``episode_steps`` 0).
 
 Vector envs (:class:`ChunkVecEnv` in this process, :class:`ShardedChunkVecEnv` in worker
-processes) lay sub-envs out task by task and split them into ``LANES`` *lanes* (sub-env ``i``'s
-lane is its place among its task's sub-envs, modulo ``LANES``). Besides gymnasium's batch
-``reset``/``step`` they take ``send_ops``/``receive_ops``: reset or step any subset without
-waiting for the others, so the collector can compute one lane's actions while the workers step
-the other. The worker processes each own part of every lane (and of every task in it).
+processes) lay sub-envs out task by task and split them into *lanes* (:func:`lane_ids`, over
+:func:`lane_count` lanes; every lane holds a share of every task). Besides
+gymnasium's batch ``reset``/``step`` they take ``send_ops``/``receive_ops``: reset or step any
+subset without waiting for the others, so the collector can compute one lane's actions while
+another is stepped. With two or more workers each worker owns one lane, and
+``ShardedChunkVecEnv.run_in_workers`` runs a function beside a worker's sub-envs (the collector
+plays a whole lane there, policy included).
 """
 
 from __future__ import annotations
@@ -46,30 +48,27 @@ from stepnft.envs.sharded import ShardedVectorEnv
 
 
 LANES = 2
-"""Lanes of a vector env (see the module doc): two, so that one is stepped while the actions of
-the other are computed. Fixed, not tied to the worker count, so that the same seed gives the same
-episodes with any ``num_workers``."""
+"""Lanes of a vector env in this process or in one worker process (see the module doc): two, so
+that one is stepped while the actions of the other are computed. With more worker processes
+there is one lane per worker. A run's episodes depend on its lanes, not on where they play: the
+same seed gives the same batch with 0, 1 or 2 workers."""
 
 
-def lane_ids(task_ids: np.ndarray) -> np.ndarray:
-    """``[N]`` the lane of every sub-env: its place among the sub-envs of its task, mod ``LANES``."""
+def lane_count(num_workers: int) -> int:
+    """Lanes of a vector env with ``num_workers`` worker processes: ``LANES``, or one per worker."""
+    return max(LANES, num_workers)
+
+
+def lane_ids(task_ids: np.ndarray, lanes: int = LANES) -> np.ndarray:
+    """``[N]`` the lane of every sub-env: its place among the sub-envs of its task plus its task
+    index, mod ``lanes``. Every lane gets a share of every task that has enough sub-envs, and
+    tasks with fewer sub-envs than lanes are spread over the lanes."""
     task_ids = np.asarray(task_ids)
     place = np.zeros(len(task_ids), dtype=np.int64)
     for k in np.unique(task_ids):
         mine = np.flatnonzero(task_ids == k)
         place[mine] = np.arange(len(mine))
-    return place % LANES
-
-
-def lane_workers(task_ids: np.ndarray, num_workers: int) -> list[int]:
-    """The worker of every sub-env: each lane's sub-envs dealt out in turn, so every worker
-    holds the same share of every lane and of every task in it."""
-    lanes = lane_ids(task_ids)
-    owner = [0] * len(lanes)
-    order = [i for lane in range(LANES) for i in np.flatnonzero(lanes == lane)]
-    for n, i in enumerate(order):
-        owner[int(i)] = n % num_workers
-    return owner
+    return (place + task_ids) % lanes
 
 
 class RenderingError(RuntimeError):
@@ -203,13 +202,14 @@ class _TaskLayout:
     itself), and ``lanes`` [N] (:func:`lane_ids`)."""
 
     def __init__(self, env_fns: list[Callable[[], gym.Env]], *, tasks: list[str], instructions: list[str],
-                 task_ids: np.ndarray, instruction_variants: list[list[str]] | None = None, **vector_kwargs: Any):
+                 task_ids: np.ndarray, instruction_variants: list[list[str]] | None = None,
+                 lanes: np.ndarray | None = None, **vector_kwargs: Any):
         self.tasks = list(tasks)
         self.instructions = list(instructions)
         self.instruction_variants = instruction_variants or [[i] for i in self.instructions]
         self.task_ids = np.asarray(task_ids, dtype=np.int64)
         self.task_names = [self.tasks[i] for i in self.task_ids]
-        self.lanes = lane_ids(self.task_ids)
+        self.lanes = lane_ids(self.task_ids) if lanes is None else np.asarray(lanes, dtype=np.int64)
         super().__init__(env_fns, **vector_kwargs)
 
     def reset(self, *, seed=None, options=None):
@@ -231,6 +231,11 @@ class _TaskLayout:
             rng.bit_generator.state = state
             rngs.append(rng)
         self.set_attr("np_random", rngs)
+
+
+def run_ops(envs: Sequence[gym.Env], ops: Sequence[tuple[int, str, Any]]) -> list:
+    """The results of ``(i, "reset", seed)`` / ``(i, "step", chunk)`` ops on ``envs[i]``, in order."""
+    return [envs[i].reset(seed=arg) if op == "reset" else envs[i].step(arg) for i, op, arg in ops]
 
 
 class ChunkVecEnv(_TaskLayout, gym.vector.SyncVectorEnv):
@@ -255,8 +260,7 @@ class ChunkVecEnv(_TaskLayout, gym.vector.SyncVectorEnv):
     def send_ops(self, ops: Sequence[tuple[int, str, Any]]) -> None:
         """``(i, "reset", seed)`` / ``(i, "step", chunk)`` on sub-env ``i``: run here, now
         (:meth:`ShardedChunkVecEnv.send_ops` runs them in the workers without waiting)."""
-        self._replies.append([self.envs[i].reset(seed=arg) if op == "reset" else self.envs[i].step(arg)
-                              for i, op, arg in ops])
+        self._replies.append(run_ops(self.envs, ops))
 
     def receive_ops(self) -> list:
         """The results of the oldest :meth:`send_ops` not yet received, in its op order."""
@@ -265,13 +269,22 @@ class ChunkVecEnv(_TaskLayout, gym.vector.SyncVectorEnv):
 
 class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
     """:class:`ChunkVecEnv` with the sub-envs dealt out to ``num_workers`` worker processes
-    (MuJoCo is CPU-bound: one worker per core), each holding its share of every lane
-    (:func:`lane_workers`). Same layout, info keys and results."""
+    (MuJoCo is CPU-bound: one worker per core). With one worker it holds both lanes; with more,
+    worker ``w`` holds lane ``w``. Same layout, info keys and results."""
 
     def __init__(self, env_fns, num_workers: int = 2, context: str | None = None, **layout):
         workers = min(num_workers, len(env_fns))
+        lanes = lane_ids(layout["task_ids"], lane_count(workers))
+        while workers > 1 and len(np.unique(lanes)) < lane_count(workers):  # too few sub-envs for a lane each
+            workers -= 1
+            lanes = lane_ids(layout["task_ids"], lane_count(workers))
         super().__init__(env_fns, num_workers=workers, context=context,
-                         assignment=lane_workers(layout["task_ids"], workers), **layout)
+                         assignment=(lanes % workers).tolist(), lanes=lanes, **layout)
+
+    def run_in_workers(self, fn, args: list) -> list:
+        """``fn(envs, sub_envs, *args[w])`` in each worker ``w`` (its chunk envs and their indices
+        in this vector env); returns one result per worker. ``fn`` must be importable by name."""
+        return self.run(fn, args)
 
 
 def checked_chunk(chunk, action_space: gym.spaces.Box, was_reset: bool) -> np.ndarray:

@@ -160,6 +160,9 @@ def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: 
                     for j, op, arg in data:
                         index = indices[j]
                         results.append(envs[j].reset(seed=arg) if op == "reset" else envs[j].step(arg))
+                elif command == "run":
+                    fn, args = data
+                    results = fn(envs, list(indices), *args)
                 elif command == "call":
                     name, args, kwargs = data
                     for j, env in enumerate(envs):
@@ -463,6 +466,19 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             self._out_of_step(exc)
             raise
         return [replies[w][k] for w, k in where]
+
+    def run(self, fn: Callable, per_worker: list[tuple]) -> list[Any]:
+        """``fn(envs, sub_envs, *per_worker[w])`` in every worker ``w`` at once, with its envs and
+        their sub-env indices; returns each worker's result, in worker order. ``fn`` travels by
+        name (a module-level function)."""
+        if len(per_worker) != self.num_workers:
+            raise ValueError(f"run needs arguments for each of the {self.num_workers} workers, got {len(per_worker)}")
+        try:
+            self._send("run", [(fn, tuple(args)) for args in per_worker])
+            return self._gather(f"run({getattr(fn, '__name__', fn)})")
+        except KeyboardInterrupt:
+            self.close()
+            raise
 
     def _out_of_step(self, exc: BaseException) -> None:
         """After a failed send or receive: a sub-env's error leaves the env usable, but an

@@ -28,8 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from stepnft.batch import Batch
+from stepnft.batch import CALL_KEYS, EPISODE_KEYS, STEP_KEYS, Batch
 from stepnft.devices import to_device
+from stepnft.envs.base import run_ops
 from stepnft.policies.base import Policy
 from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
@@ -66,7 +67,11 @@ class Collector:
     def play(self, policy: Policy, plan: EpisodePlan, noise_level: float, record: RolloutSpec | None = None,
              progress: Progress | None = None) -> Batch:
         """Every episode of ``plan``, in its order in the batch. With ``record`` the batch holds
-        the policy calls and recorded denoising steps, else only the episode table."""
+        the policy calls and recorded denoising steps, else only the episode table. With a lane
+        per worker process and the policy on the CPU, each worker plays its lane with a copy of
+        the policy (no traffic per step); else this process samples for every lane."""
+        if getattr(self.venv, "num_workers", 0) >= 2 and policy.device.type == "cpu":
+            return _play_in_workers(self.venv, policy, plan, noise_level, record, progress)
         return _Play(self.venv, policy, plan, noise_level, record, progress).run()
 
     def state_dict(self) -> dict:
@@ -97,6 +102,77 @@ def plan_lanes(plan: EpisodePlan, task_ids: np.ndarray, lanes: np.ndarray) -> np
             raise ValueError(f"the plan has episodes of task {k}, which has no sub-env")
         out[mine] = task_lanes[np.arange(len(mine)) % len(task_lanes)]
     return out
+
+
+def _play_in_workers(venv, policy: Policy, plan: EpisodePlan, noise_level: float, record: RolloutSpec | None,
+                     progress: Progress | None) -> Batch:
+    """Each worker process plays its lane's part of ``plan`` (:func:`play_lane`); the parts are
+    merged into plan order, the same batch as one process playing the lanes in turn."""
+    lanes = np.asarray(venv.lanes)
+    lane_of = plan_lanes(plan, np.asarray(venv.task_ids), lanes)
+    rows = [np.flatnonzero(lane_of == lane) for lane in range(venv.num_workers)]  # worker w holds lane w
+    layout = (list(venv.tasks), np.asarray(venv.task_ids))
+    args = [(layout, policy, plan.take(r), noise_level, record) for r in rows]
+    parts = venv.run_in_workers(play_lane, args)
+    if progress is not None:
+        progress(len(plan), len(plan))
+    played = [(part, r) for part, r in zip(parts, rows) if part is not None]
+    return merge_parts([p for p, _ in played], [r for _, r in played])
+
+
+def play_lane(envs: list, sub_envs: list[int], layout: tuple[list[str], np.ndarray], policy: Policy,
+              plan: EpisodePlan, noise_level: float, record: RolloutSpec | None) -> Batch | None:
+    """In a worker process: its envs (sub-envs ``sub_envs`` of the vector env, one lane) play
+    ``plan`` with this copy of the policy. ``layout``: the vector env's tasks and task ids."""
+    if len(plan) == 0:
+        return None
+    # A worker is one core. One thread also keeps a forked child out of the OpenMP pool its
+    # parent may have started, where it would hang; with --num-threads 1 (the default) the
+    # parent computes the same bits.
+    torch.set_num_threads(1)
+    tasks, task_ids = layout
+    return _Play(_LaneEnvs(envs, task_ids[sub_envs], tasks), policy, plan, noise_level, record, None).run()
+
+
+class _LaneEnvs:
+    """A worker's chunk envs, driven as a one-lane vector env (ops run at once, here)."""
+
+    def __init__(self, envs: list, task_ids, tasks: list[str]):
+        self.envs, self.task_ids, self.tasks = envs, np.asarray(task_ids), tasks
+        self.lanes = np.zeros(len(envs), dtype=np.int64)
+        self._replies: collections.deque = collections.deque()
+
+    def send_ops(self, ops) -> None:
+        self._replies.append(run_ops(self.envs, ops))
+
+    def receive_ops(self) -> list:
+        return self._replies.popleft()
+
+
+def merge_parts(parts: list[Batch], rows: list[np.ndarray], keep: Tensor | None = None) -> Batch:
+    """One batch in plan order from parts of a plan played apart (``rows[j]``: the plan row of
+    each episode of ``parts[j]``, in its order): episodes by plan row, each episode's calls
+    together in their order, each call's steps together. ``keep`` ([E] bool over the parts'
+    episodes in order): drop the others with their calls and steps."""
+    batch = Batch.concat(parts)
+    plan_row = torch.as_tensor(np.concatenate(rows), dtype=torch.int64)
+    episodes = torch.argsort(plan_row)
+    if keep is not None:
+        episodes = episodes[keep[episodes]]
+    new_episode = torch.full((batch.num_episodes,), -1, dtype=torch.int64)
+    new_episode[episodes] = torch.arange(len(episodes))
+    kept = torch.nonzero(new_episode[batch.episode] >= 0).squeeze(1)
+    calls = kept[torch.argsort(new_episode[batch.episode[kept]], stable=True)]
+    new_call = torch.full((batch.num_calls,), -1, dtype=torch.int64)
+    new_call[calls] = torch.arange(len(calls))
+    kept = torch.nonzero(new_call[batch.call] >= 0).squeeze(1)
+    steps = kept[torch.argsort(new_call[batch.call[kept]], stable=True)]
+    return Batch(
+        **{k: getattr(batch, k)[episodes] for k in EPISODE_KEYS},
+        obs={k: v[calls] for k, v in batch.obs.items()},
+        **{k: getattr(batch, k)[calls] for k in CALL_KEYS if k != "episode"}, episode=new_episode[batch.episode[calls]],
+        **{k: getattr(batch, k)[steps] for k in STEP_KEYS if k != "call"}, call=new_call[batch.call[steps]],
+    )
 
 
 @dataclass

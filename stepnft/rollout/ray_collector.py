@@ -41,12 +41,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from stepnft.batch import CALL_KEYS, EPISODE_KEYS, STEP_KEYS, Batch
+from stepnft.batch import Batch
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import lane_ids
 from stepnft.envs.sharded import shard_ranges
 from stepnft.policies.base import Policy
-from stepnft.rollout.collector import Collector, Progress
+from stepnft.rollout.collector import Collector, Progress, merge_parts  # noqa: F401 - merge_parts: re-exported
 from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
 MAX_POLICIES = 3
@@ -413,29 +413,3 @@ def _whole_groups(batch: Batch, group_size: int) -> torch.Tensor:
     key = batch.episode_task * 2**32 + batch.episode_seed
     _, inverse, counts = key.unique(return_inverse=True, return_counts=True)
     return counts[inverse] % group_size == 0
-
-
-def merge_parts(parts: list[Batch], rows: list[np.ndarray], keep: torch.Tensor | None = None) -> Batch:
-    """One batch in plan order from the parts the workers played (``rows[j]``: the plan row of
-    each episode of ``parts[j]``, in its order): episodes by plan row, each episode's calls
-    together in their order, each call's steps together. ``keep`` ([E] bool over the parts'
-    episodes in order): drop the others with their calls and steps."""
-    batch = Batch.concat(parts)
-    plan_row = torch.as_tensor(np.concatenate(rows), dtype=torch.int64)
-    episodes = torch.argsort(plan_row)
-    if keep is not None:
-        episodes = episodes[keep[episodes]]
-    new_episode = torch.full((batch.num_episodes,), -1, dtype=torch.int64)
-    new_episode[episodes] = torch.arange(len(episodes))
-    kept = torch.nonzero(new_episode[batch.episode] >= 0).squeeze(1)
-    calls = kept[torch.argsort(new_episode[batch.episode[kept]], stable=True)]
-    new_call = torch.full((batch.num_calls,), -1, dtype=torch.int64)
-    new_call[calls] = torch.arange(len(calls))
-    kept = torch.nonzero(new_call[batch.call] >= 0).squeeze(1)
-    steps = kept[torch.argsort(new_call[batch.call[kept]], stable=True)]
-    return Batch(
-        **{k: getattr(batch, k)[episodes] for k in EPISODE_KEYS},
-        obs={k: v[calls] for k, v in batch.obs.items()},
-        **{k: getattr(batch, k)[calls] for k in CALL_KEYS if k != "episode"}, episode=new_episode[batch.episode[calls]],
-        **{k: getattr(batch, k)[steps] for k in STEP_KEYS if k != "call"}, call=new_call[batch.call[steps]],
-    )

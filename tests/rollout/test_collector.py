@@ -181,7 +181,9 @@ def test_the_same_batch_whatever_the_timing(monkeypatch):
 
 
 def test_lanes_overlap_one_lane_is_sent_before_the_other_is_received():
-    venv = make_metaworld_vec_env(["reach-v3"], 4, n_exec=4, max_episode_steps=12, num_workers=2)
+    """One worker holds both lanes and this process samples: it computes one lane's actions
+    while the worker steps the other."""
+    venv = make_metaworld_vec_env(["reach-v3"], 4, n_exec=4, max_episode_steps=12, num_workers=1)
     events = []
     send, receive = venv.send_ops, venv.receive_ops
     venv.send_ops = lambda ops: (events.append("send"), send(ops))[1]
@@ -196,6 +198,19 @@ def test_lanes_overlap_one_lane_is_sent_before_the_other_is_received():
         in_flight += 1 if event == "send" else -1
         assert 0 <= in_flight <= 2
     assert events.count("send") == events.count("receive")
+
+
+def test_with_a_lane_per_worker_each_worker_plays_its_lane_with_a_copy_of_the_policy():
+    venv = make_metaworld_vec_env(["reach-v3", "push-v3"], 2, n_exec=4, max_episode_steps=12, num_workers=2)
+    assert venv.num_workers == 2 and venv.shards == [[0, 3], [1, 2]]  # worker w holds lane w
+    assert venv.lanes.tolist() == [0, 1, 1, 0]  # each lane holds a sub-env of each task
+    sent = []
+    send = venv.send_ops
+    venv.send_ops = lambda ops: (sent.append(ops), send(ops))[1]
+    batch = Collector(venv, seed=2).collect(small_policy(GoalSeeker, state_clip=100.0), 8, RolloutSpec(0.3))
+    venv.close()
+    assert not sent  # no traffic per step: the workers sampled
+    assert batch.num_episodes == 8 and batch.episode_task.tolist() == [0] * 4 + [1] * 4
 
 
 def test_plan_lanes_follow_the_sub_envs_of_each_task():
