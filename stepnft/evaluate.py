@@ -142,7 +142,6 @@ def record_videos(
     """
     import imageio.v2 as imageio
 
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless; read when the first renderer is made
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     policy.eval()

@@ -50,7 +50,9 @@ def stepnft_loss(
     actions: Tensor | None = None,
     weight: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The π-StepNFT step-wise contrastive ranking loss (docs/algorithm.md §4).
+    """The π-StepNFT step-wise contrastive ranking loss (docs/algorithm.md §4). One function on
+    purpose: the body reads as the equations of §4 top to bottom (its length is the signature
+    and this argument list).
 
     Args:
         v: policy velocity at ``(x_t, t)``, with grad, ``[B, H, A]``.

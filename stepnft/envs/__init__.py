@@ -46,6 +46,11 @@ def get_simulator(name: str):
     return getattr(module, cls)()
 
 
+RENDERING_ENV_VARS = ("MUJOCO_GL", "PYOPENGL_PLATFORM")
+"""Environment variables that choose how the simulators render offscreen (MuJoCo's GL backend);
+processes started elsewhere (Ray workers) get the driver's."""
+
+
 def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None, sub_envs=None):
     """The vector env an :class:`~stepnft.config.EnvConfig` describes, acting in chunks of
     ``n_exec`` actions; sub-env streams seeded from ``seed``. ``perturbations``

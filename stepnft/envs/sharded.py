@@ -102,13 +102,43 @@ def _error_reply(index: int, exc: BaseException) -> tuple:
 def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: Connection,
             parent_conn: Connection | None) -> None:
     """Owns sub-envs ``indices`` (built by `env_fns`, in that order); answers one reply per
-    command, with one result per owned sub-env, in the same order."""
+    command, with one result per owned sub-env, in the same order (one per worker for ``run``)."""
     # Ctrl-C goes to the whole process group: let the parent handle it and close us.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_conn is not None:
         parent_conn.close()
+    envs = _build_envs(indices, env_fns, conn)
+    if envs is None:
+        return
+    try:
+        while True:
+            try:
+                command, data = conn.recv()
+            except (EOFError, OSError):  # the parent is gone
+                break
+            if command == "close":
+                conn.send(("ok", None))
+                break
+            current = [indices[0]]  # the sub-env being worked on, for error reports
+            try:
+                reply = ("ok", _answer(envs, indices, command, data, current))
+            except Exception as exc:  # noqa: BLE001 - sent back to the parent
+                reply = _error_reply(current[0], exc)
+            try:
+                conn.send(reply)
+            except Exception as exc:  # noqa: BLE001 - e.g. an attribute that cannot be pickled
+                conn.send(_error_reply(indices[0], exc))
+    finally:
+        for env in envs:
+            _quiet_close(env)
+        conn.close()
+
+
+def _build_envs(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: Connection) -> list | None:
+    """The worker's envs, their spaces checked and sent to the parent; None (after reporting the
+    error and closing what was built) if that failed."""
     envs: list[gym.Env] = []
-    index = indices[0]  # the sub-env being worked on, for error reports
+    index = indices[0]
     try:
         for j, fn in enumerate(env_fns):
             index = indices[j]
@@ -124,6 +154,7 @@ def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: 
                                    f"sub-env {indices[0]}'s {first.action_space}")
         conn.send(("ok", (first.observation_space, first.action_space, dict(first.metadata),
                           getattr(first, "render_mode", None))))
+        return envs
     except BaseException as exc:  # noqa: BLE001 - report everything, then quit
         try:
             conn.send(_error_reply(index, exc))
@@ -131,63 +162,41 @@ def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: 
             for env in envs:
                 _quiet_close(env)
             conn.close()
-        return
+        return None
 
-    try:
-        while True:
-            try:
-                command, data = conn.recv()
-            except (EOFError, OSError):  # the parent is gone
-                break
-            if command == "close":
-                conn.send(("ok", None))
-                break
-            try:
-                results = []
-                if command == "reset":
-                    seeds, options, mask = data
-                    for j, env in enumerate(envs):
-                        index = indices[j]
-                        if mask is None or mask[j]:
-                            results.append(env.reset(seed=seeds[j], options=options))
-                        else:
-                            results.append(None)
-                elif command == "step":
-                    for j, (env, action) in enumerate(zip(envs, data, strict=True)):
-                        index = indices[j]
-                        results.append(env.step(action))
-                elif command == "ops":
-                    for j, op, arg in data:
-                        index = indices[j]
-                        results.append(envs[j].reset(seed=arg) if op == "reset" else envs[j].step(arg))
-                elif command == "run":
-                    fn, args = data
-                    results = fn(envs, list(indices), *args)
-                elif command == "call":
-                    name, args, kwargs = data
-                    for j, env in enumerate(envs):
-                        index = indices[j]
-                        attr = env.get_wrapper_attr(name)
-                        results.append(attr(*args, **kwargs) if callable(attr) else attr)
-                elif command == "set_attr":
-                    name, values = data
-                    for j, (env, value) in enumerate(zip(envs, values, strict=True)):
-                        index = indices[j]
-                        env.set_wrapper_attr(name, value)
-                        results.append(None)
-                else:
-                    raise ValueError(f"unknown command {command!r}")
-                reply = ("ok", results)
-            except Exception as exc:  # noqa: BLE001 - sent back to the parent
-                reply = _error_reply(index, exc)
-            try:
-                conn.send(reply)
-            except Exception as exc:  # noqa: BLE001 - e.g. an attribute that cannot be pickled
-                conn.send(_error_reply(indices[0], exc))
-    finally:
-        for env in envs:
-            _quiet_close(env)
-        conn.close()
+
+def _answer(envs: list[gym.Env], indices: Sequence[int], command: str, data: Any, current: list[int]) -> Any:
+    """The results of one command; ``current[0]`` names the sub-env being worked on."""
+
+    def each(items):
+        for j, item in items:
+            current[0] = indices[j]
+            yield j, item
+
+    if command == "reset":
+        seeds, options, mask = data
+        return [env.reset(seed=seeds[j], options=options) if mask is None or mask[j] else None
+                for j, env in each(enumerate(envs))]
+    if command == "step":
+        return [env.step(action) for _, (env, action) in each(enumerate(zip(envs, data, strict=True)))]
+    if command == "ops":
+        return [envs[j].reset(seed=arg) if op == "reset" else envs[j].step(arg)
+                for j, (op, arg) in each((j, (op, arg)) for j, op, arg in data)]
+    if command == "run":
+        fn, args = data
+        return fn(envs, list(indices), *args)
+    if command == "call":
+        name, args, kwargs = data
+        return [_called(env.get_wrapper_attr(name), args, kwargs) for _, env in each(enumerate(envs))]
+    if command == "set_attr":
+        name, values = data
+        return [env.set_wrapper_attr(name, value) for _, (env, value) in each(enumerate(zip(envs, values, strict=True)))]
+    raise ValueError(f"unknown command {command!r}")
+
+
+def _called(attr: Any, args: tuple, kwargs: dict) -> Any:
+    """``attr(*args, **kwargs)`` if it is callable, else ``attr`` (SyncVectorEnv's ``call``)."""
+    return attr(*args, **kwargs) if callable(attr) else attr
 
 
 def _quiet_close(env: gym.Env) -> None:
@@ -296,11 +305,35 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
             self._position[list(shard)] = np.arange(len(shard))
         self._in_flight: collections.deque[tuple[list[int], list[tuple[int, int]]]] = collections.deque()
 
+        self._workers = _Workers()
+        self._finalizer = weakref.finalize(self, self._workers.shutdown)
+        self._start_workers(env_fns, context)
+        try:
+            spaces = self._gather("building the sub-envs")  # one reply per worker
+        except BaseException:
+            self.close()
+            raise
+        obs_space, act_space, metadata, render_mode = spaces[0]
+        for w, (o, a, _, _) in enumerate(spaces[1:], start=1):
+            if o != obs_space or a != act_space:
+                self.close()
+                raise RuntimeError(
+                    f"sub-env {self.shards[w][0]} has spaces ({o}, {a}), sub-env 0 has "
+                    f"({obs_space}, {act_space}); every sub-env must share them")
+        self.single_observation_space = obs_space
+        self.single_action_space = act_space
+        self.observation_space = batch_space(obs_space, self.num_envs)
+        self.action_space = batch_space(act_space, self.num_envs)
+        self.metadata = dict(metadata)
+        self.metadata["autoreset_mode"] = self.autoreset_mode
+        self.render_mode = render_mode
+        self._env_obs: list[Any] = [None] * self.num_envs
+
+    def _start_workers(self, env_fns: list[Callable[[], gym.Env]], context: str | None) -> None:
+        """One worker process per shard (``context``: the start method; default fork)."""
         if context is None:
             context = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         ctx = multiprocessing.get_context(context)
-        self._workers = _Workers()
-        self._finalizer = weakref.finalize(self, self._workers.shutdown)
         for shard in self.shards:
             fns = [env_fns[i] for i in shard]
             if context != "fork":
@@ -322,27 +355,6 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
                 child_conn.close()
             self._workers.processes.append(process)
             self._workers.conns.append(parent_conn)
-
-        try:
-            spaces = self._gather("building the sub-envs")  # one reply per worker
-        except BaseException:
-            self.close()
-            raise
-        obs_space, act_space, metadata, render_mode = spaces[0]
-        for w, (o, a, _, _) in enumerate(spaces[1:], start=1):
-            if o != obs_space or a != act_space:
-                self.close()
-                raise RuntimeError(
-                    f"sub-env {self.shards[w][0]} has spaces ({o}, {a}), sub-env 0 has "
-                    f"({obs_space}, {act_space}); every sub-env must share them")
-        self.single_observation_space = obs_space
-        self.single_action_space = act_space
-        self.observation_space = batch_space(obs_space, self.num_envs)
-        self.action_space = batch_space(act_space, self.num_envs)
-        self.metadata = dict(metadata)
-        self.metadata["autoreset_mode"] = self.autoreset_mode
-        self.render_mode = render_mode
-        self._env_obs: list[Any] = [None] * self.num_envs
 
     # ------------------------------------------------------------------ public API
 

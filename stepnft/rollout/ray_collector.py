@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from stepnft.batch import Batch
-from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs import RENDERING_ENV_VARS, env_options, get_simulator, make_vec_env
 from stepnft.envs.base import lane_ids
 from stepnft.envs.sharded import shard_ranges
 from stepnft.policies.base import Policy
@@ -191,7 +191,7 @@ class RayCollector(Collector):
         self._owns_ray = not ray.is_initialized()
         cpus = max(1, env_cfg.num_workers)  # a worker with env.num_workers steps its envs in that many processes
         if self._owns_ray:
-            env_vars = {k: os.environ[k] for k in ("MUJOCO_GL",) if k in os.environ}
+            env_vars = {k: os.environ[k] for k in RENDERING_ENV_VARS if k in os.environ}
             try:
                 ray.init(address=ray_cfg.address, num_cpus=None if ray_cfg.address else ray_cfg.workers * cpus,
                          include_dashboard=False, runtime_env={"env_vars": env_vars} if env_vars else None)
