@@ -26,6 +26,8 @@ from pathlib import Path
 
 import yaml
 
+from provenance import command, commit
+
 from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, to_dict
 from stepnft.evaluate import format_ci
 from stepnft.runs import read_metrics, save_panels, task_panels
@@ -164,6 +166,7 @@ def main(argv=None) -> dict:
             start = time.perf_counter()
             summary = train(cfg)
             summary["wall_clock_s"] = time.perf_counter() - start
+            summary["commit"] = commit()  # the code this seed ran on
             done.write_text(json.dumps(summary, indent=2))
         summary = json.loads(done.read_text())
         runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary})
@@ -173,14 +176,14 @@ def main(argv=None) -> dict:
     text = (table(runs, tasks) + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
             f"3 test evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
             f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}"
-            + (f" with {' '.join(args.set)}" if args.set else "") + ".")
+            + (f" with {' '.join(args.set)}" if args.set else "") + f".\n\nCommand: `{command()}` (commit {commit()}).")
     if args.paired_with:
         text += "\n\nPaired differences of the final success (this minus the other, same seed and SFT start; the " \
                 "average over every seed and task):\n\n" + paired_table(runs, tasks, args.paired_with)
     print(text)
     (out / "learning.md").write_text(text + "\n")
     plot(out, runs, tasks)
-    result = {"args": vars(args), "tasks": tasks, "runs": runs,
+    result = {"command": command(), "commit": commit(), "args": vars(args), "tasks": tasks, "runs": runs,
               "average": {w: [r["average"][w] for r in runs] for w in ("before", "after", "best")}}
     (out / "learning.json").write_text(json.dumps(result, indent=2))
     return result

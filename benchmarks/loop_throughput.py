@@ -27,13 +27,13 @@ import dataclasses
 import json
 import multiprocessing
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from provenance import command, commit
 
 from stepnft.algos.base import make_algorithm
 from stepnft.config import load_config
@@ -154,14 +154,6 @@ def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
     return rows
 
 
-def commit() -> str:
-    root = Path(__file__).resolve().parents[1]
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "stepnft", "benchmarks"], capture_output=True, text=True,
-                           cwd=root).stdout.strip()
-    return head + ("+uncommitted" if dirty else "")
-
-
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, help="a finished `stepnft train` run folder (its config and policies)")
@@ -192,7 +184,7 @@ def main(argv=None) -> dict:
     summary = json.loads((run / "summary.json").read_text())
     from stepnft.envs import base
 
-    record = {"command": " ".join([os.path.relpath(sys.executable), *sys.argv]), "commit": commit(), "args": vars(args),
+    record = {"command": command(), "commit": commit(), "args": vars(args),
               "lanes": base.LANES, "envs_per_task": cfg.env.envs_per_task,
               "cameras": list(cfg.env.cameras), "rows": rows, "run_time_s": summary.get("time_s"),
               "run_env_steps": summary.get("env_steps"), "load_average_1min": os.getloadavg()[0],

@@ -1,0 +1,24 @@
+"""What a results folder records about how it was made: the exact command and the commit it
+ran on (``scripts/stale_results.py`` reads the commit)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def commit() -> str:
+    """The checkout's short commit, ``+uncommitted`` if the package, configs or benchmarks differ from it."""
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "stepnft", "configs", "benchmarks/*.py"], capture_output=True,
+                           text=True, cwd=ROOT).stdout.strip()
+    return head + ("+uncommitted" if dirty else "")
+
+
+def command() -> str:
+    """The command line that is running, with the interpreter relative to the checkout."""
+    return " ".join([os.path.relpath(sys.executable, ROOT), *sys.argv])

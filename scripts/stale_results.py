@@ -1,0 +1,87 @@
+"""List the result folders under benchmarks/results/ that were made on code older than the
+package code they depend on (``stepnft/`` and ``configs/``).
+
+A folder's commit is the ``commit`` its JSON files record (benchmarks write it), else the commit
+that last added or changed the folder in git (the results were made on the code before it).
+A folder is *stale* when ``stepnft/`` or ``configs/`` changed after that commit: its figures may
+no longer be what the code gives (a change that keeps every number, e.g. a refactor checked
+bit for bit, still counts: the docs then say why the figures stand). Exit code 0; with
+``--fail`` 1 when any folder is stale.
+
+    python scripts/stale_results.py            # every folder, stale ones first
+    python scripts/stale_results.py --fail     # for CI-style checks
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPENDS_ON = ("stepnft", "configs")
+
+
+def git(root: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=root, check=False).stdout.strip()
+
+
+def recorded_commit(folder: Path) -> str | None:
+    """The ``commit`` a benchmark wrote into one of the folder's JSON files (without a
+    ``+uncommitted`` suffix), if any."""
+    for path in sorted(folder.glob("*.json")):
+        try:
+            value = json.loads(path.read_text()).get("commit")
+        except (ValueError, AttributeError, OSError):
+            continue
+        if isinstance(value, str) and value:
+            return value.split("+")[0]
+    return None
+
+
+def folder_commit(root: Path, folder: Path) -> tuple[str | None, bool]:
+    """``(commit, recorded)``: the recorded commit, or the one that last committed the folder."""
+    recorded = recorded_commit(folder)
+    if recorded:
+        return recorded, True
+    return git(root, "log", "-1", "--format=%h", "--", str(folder.relative_to(root))) or None, False
+
+
+def changes_since(root: Path, commit: str, recorded: bool) -> list[str]:
+    """Commits that changed the code the results depend on since they were made: after a
+    recorded commit, or since the parent of the commit that committed them (its own code
+    changes count: the results were made before it)."""
+    if not git(root, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}"):
+        return ["(unknown commit)"]
+    base = commit if recorded else f"{commit}~1"
+    if not recorded and not git(root, "rev-parse", "--verify", "--quiet", base):  # the first commit: all counts
+        return git(root, "log", "--format=%h %ad %s", "--date=short", "HEAD", "--", *DEPENDS_ON).splitlines()
+    return git(root, "log", "--format=%h %ad %s", "--date=short", f"{base}..HEAD", "--", *DEPENDS_ON).splitlines()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--root", default=str(ROOT), help="the checkout (default: this script's)")
+    p.add_argument("--fail", action="store_true", help="exit 1 when a folder is stale")
+    args = p.parse_args(argv)
+    root = Path(args.root).resolve()
+    rows = []
+    for folder in sorted(f for f in (root / "benchmarks" / "results").iterdir() if f.is_dir()):
+        commit, recorded = folder_commit(root, folder)
+        if commit is None:
+            rows.append((True, folder.name, "not committed", []))
+            continue
+        changes = changes_since(root, commit, recorded)
+        rows.append((bool(changes), folder.name, f"{'recorded' if recorded else 'committed in'} {commit}", changes))
+    for stale, name, where, changes in sorted(rows, key=lambda r: (not r[0], r[1])):
+        state = f"STALE ({len(changes)} code commits since)" if stale else "current"
+        print(f"{name:<32} {where:<22} {state}")
+        if stale and changes:
+            print(f"{'':<32} latest: {changes[0][:100]}")
+    return 1 if args.fail and any(r[0] for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""scripts/stale_results.py on a throwaway git checkout: a results folder is stale once the
+package code changed after the commit it ran on (recorded, or the one that committed it)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "stale_results.py"
+
+
+def git(root: Path, *args: str) -> str:
+    return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=root, check=True,
+                          capture_output=True, text=True).stdout.strip()
+
+
+def stale(root: Path) -> dict[str, bool]:
+    out = subprocess.run([sys.executable, str(SCRIPT), "--root", str(root)], capture_output=True, text=True, check=True)
+    return {line.split()[0]: "STALE" in line for line in out.stdout.splitlines() if not line.startswith(" ")}
+
+
+def test_folders_older_than_the_code_are_listed_as_stale(tmp_path):
+    git(tmp_path, "init", "-q")
+    (tmp_path / "stepnft").mkdir()
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\n")
+    results = tmp_path / "benchmarks" / "results"
+    for name in ("old", "new", "recorded"):
+        (results / name).mkdir(parents=True)
+        (results / name / "table.md").write_text(name)
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "code and results")
+    first = git(tmp_path, "rev-parse", "--short", "HEAD")
+    (tmp_path / "stepnft" / "core.py").write_text("x = 2\n")
+    git(tmp_path, "commit", "-qam", "the code changes")
+    (results / "new" / "table.md").write_text("rerun")
+    (results / "recorded" / "r.json").write_text(json.dumps({"commit": git(tmp_path, "rev-parse", "--short", "HEAD")}))
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "results made on the new code")
+    assert stale(tmp_path) == {"old": True, "new": False, "recorded": False}
+    (results / "recorded" / "r.json").write_text(json.dumps({"commit": first}))  # it says it ran on the old code
+    git(tmp_path, "commit", "-qam", "edit")
+    assert stale(tmp_path)["recorded"] is True
