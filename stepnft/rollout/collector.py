@@ -3,12 +3,21 @@
 
 Continuous collection: every sub-env plays episodes of its task back to back, a new one as
 soon as its last one ended, until the plan is done (the plan: ``stepnft.rollout.plan``). The
-vector env's sub-envs form two *lanes* (``venv.lanes``, ``stepnft.envs.base.LANES``) that take turns: while
-the workers step one lane, this process computes the next actions of the other. Each lane
-plays a fixed share of the plan (episode ``j`` of a task goes to the lane of the task's sub-env
-``j mod n``), its sub-envs taking the lane's episodes of their task in plan order as they come
-free. Everything a lane does follows from its episodes and the policy, never from timing, so
-the same plan gives the same batch, bit for bit, with any number of worker processes.
+vector env's sub-envs form *lanes* (``venv.lanes``; ``stepnft.envs.base``), and each lane plays
+a fixed share of the plan (episode ``j`` of a task goes to the lane of the task's sub-env ``j
+mod n``), its sub-envs taking the lane's episodes of their task in plan order as they come free.
+Where the lanes play depends on the machine, not the result:
+
+- in this process, or with one simulator worker: this process samples every lane's actions,
+  the lanes taking turns, so that the worker steps one lane while the next actions of the other
+  are computed;
+- with a worker per lane (``env.num_workers >= 2``) and the policy on the CPU: each worker plays
+  its lane with a copy of the policy, nothing crosses a pipe per env step, and the parts are
+  merged into plan order.
+
+Everything a lane does follows from its episodes and the policy, never from timing, so the same
+plan gives the same batch, bit for bit, with 0, 1 or 2 workers (more workers make more lanes,
+which batch the policy's rows differently: the same episodes up to the last float bits).
 
 :meth:`Collector.collect` draws an iteration's plan (per-task counts, groups of episodes
 sharing one initial state) and records what the algorithm's :class:`RolloutSpec` asks;
