@@ -28,7 +28,7 @@ from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
-from stepnft.data.demos import load_or_generate_demos
+from stepnft.data.demos import check_task_episodes, load_or_generate_demos
 from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import RenderingError
@@ -307,6 +307,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     resolve_device(cfg.device)  # before anything is created: no CUDA here is one line, exit code 2
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
+    check_task_episodes(cfg.demos, tasks)
     state_dim = sim.state_dim_for(cfg.env.state_obs)
     # An --init policy of another type (e.g. a LeRobot SmolVLA) brings its own sizes.
     policy_cfg = load_policy_config(cfg.init) if cfg.init else cfg.policy
