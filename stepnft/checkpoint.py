@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -26,6 +27,8 @@ from stepnft.policies.base import Policy, non_finite
 from stepnft.runs import write_atomic
 
 KEEP = 2  # checkpoints kept on disk
+NAME = re.compile(r"iter_\d{6}")
+"""A checkpoint's folder name; ``LATEST`` holds one, never a path."""
 FORMAT_VERSION = 3
 """3: training progress in one record, collectors that draw episode plans (runs of format 2 cannot resume)."""
 
@@ -72,19 +75,25 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) 
     bad = non_finite(tensors)
     if bad:
         raise ValueError(f"refusing to write checkpoint {name} with non-finite values ({len(bad)} tensors)")
-    tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tmp-"))
     try:
-        policy.save_pretrained(tmp / "policy")
-        save_file(tensors, str(tmp / "state.safetensors"))
-        (tmp / "state.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "state": skeleton}))
-        final = root / name
-        if final.exists():  # never the one LATEST names: iterations only grow after a resume
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    write_atomic(root / "LATEST", name)
+        tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tmp-"))
+        try:
+            policy.save_pretrained(tmp / "policy")
+            save_file(tensors, str(tmp / "state.safetensors"))
+            (tmp / "state.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "state": skeleton}))
+            final = root / name
+            if final.exists():  # never the one LATEST names: iterations only grow after a resume
+                shutil.rmtree(final)
+            os.replace(tmp, final)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        write_atomic(root / "LATEST", name)
+    except (OSError, SafetensorError) as err:  # e.g. a full disk: say so in one line, keep the previous one
+        reason = getattr(err, "strerror", None) or str(err).splitlines()[0]
+        kept = (f"the previous checkpoint is intact: free some space, then `stepnft train --resume {run_dir}`"
+                if (root / "LATEST").is_file() else "no earlier checkpoint: free some space and start the run again")
+        raise OSError(f"could not write checkpoint {name} into {root} ({reason}); {kept}") from err
     for old in sorted(p for p in root.glob("iter_*") if p.name != name)[:-(KEEP - 1) or None]:
         shutil.rmtree(old, ignore_errors=True)
     return final
@@ -96,10 +105,7 @@ def load_checkpoint(run_dir: Path) -> dict:
     Raises ValueError with one actionable line if there is none or it is corrupt.
     """
     root = Path(run_dir) / "checkpoints"
-    latest = root / "LATEST"
-    if not latest.is_file():
-        raise ValueError(f"no checkpoint to resume in {run_dir}: start a new run with `stepnft train --run-dir ...`")
-    ckpt = root / latest.read_text().strip()
+    ckpt = root / latest_name(run_dir)
     try:
         policy = Policy.from_pretrained(ckpt / "policy")
         meta = json.loads((ckpt / "state.json").read_text())
@@ -107,6 +113,31 @@ def load_checkpoint(run_dir: Path) -> dict:
             raise ValueError(f"checkpoint format {meta.get('format_version')}, this stepnft reads {FORMAT_VERSION}")
         state = unflatten_state(meta["state"], load_file(str(ckpt / "state.safetensors")))
     except (FileNotFoundError, ValueError, KeyError, TypeError, OSError, SafetensorError, json.JSONDecodeError) as err:
-        raise ValueError(f"checkpoint {ckpt} is corrupt or incomplete ({str(err).splitlines()[0]}); "
-                         "delete it and point LATEST at an older one, or start a new run") from err
+        older = [p.name for p in _checkpoints(root) if p.name < ckpt.name]
+        fix = (f"delete it and point LATEST at the one before (`rm -r {ckpt} && echo {older[-1]} > {root / 'LATEST'}`)"
+               if older else f"no older checkpoint is left: start a new run in another --run-dir")
+        raise ValueError(f"checkpoint {ckpt} is corrupt or incomplete ({str(err).splitlines()[0]}); {fix}") from err
     return {"policy": policy, "state": state, "path": ckpt}
+
+
+def _checkpoints(root: Path) -> list[Path]:
+    """The checkpoint folders under ``root``, oldest first."""
+    return sorted(p for p in root.glob("iter_*") if NAME.fullmatch(p.name) and p.is_dir())
+
+
+def latest_name(run_dir: Path) -> str:
+    """The checkpoint ``RUN/checkpoints/LATEST`` names; a ValueError saying how to repair it
+    when it is missing or names anything but a checkpoint folder of this run."""
+    root = Path(run_dir) / "checkpoints"
+    latest = root / "LATEST"
+    name = latest.read_text().strip() if latest.is_file() else None
+    if name is not None and NAME.fullmatch(name) and (root / name).is_dir():
+        return name
+    found = _checkpoints(root)
+    problem = ("has no checkpoints/LATEST" if name is None
+               else f"has a checkpoints/LATEST that names {name!r}, not a checkpoint folder of this run")
+    if not found:
+        raise ValueError(f"no checkpoint to resume in {run_dir}: it {problem} and no checkpoint folder (it stopped "
+                         "before its first checkpoint); start a new run in another --run-dir, or delete this one")
+    raise ValueError(f"cannot resume {run_dir}: it {problem}; point it at its newest checkpoint "
+                     f"(`echo {found[-1].name} > {latest}`), then resume")

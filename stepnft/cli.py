@@ -16,6 +16,7 @@ import contextlib
 import io
 import dataclasses
 import json
+import re
 import sys
 import typing
 from pathlib import Path
@@ -64,7 +65,8 @@ def _parse(cls, argv: list[str], default, prog: str, description: str | None = N
             values = tyro.cli(cls, args=argv, default=default, prog=prog, description=description or _describe(cls))
     except SystemExit as stop:
         if stop.code not in (0, None):
-            message = _renamed_flag(argv, prog) or f"{_first_message(errors.getvalue())}; see `{prog} --help`"
+            message = (_renamed_flag(argv, prog) or _switch_given_a_value(argv, errors.getvalue())
+                       or f"{_first_message(errors.getvalue())}; see `{prog} --help`")
             raise UsageError(message) from None
         raise
     try:
@@ -105,12 +107,25 @@ def _renamed_flag(argv: list[str], prog: str) -> str | None:
     return None
 
 
+def _switch_given_a_value(argv: list[str], box: str) -> str | None:
+    """The error for a value after a switch (``--env.terminate-on-success maybe``), if tyro
+    refused one: switches take none."""
+    unrecognised = re.search(r"Unrecognized options?: (\S+)", " ".join(box.split()))
+    token = unrecognised[1] if unrecognised else None
+    if token not in argv or argv.index(token) == 0 or not argv[argv.index(token) - 1].startswith("--"):
+        return None
+    switch = argv[argv.index(token) - 1]
+    section, _, name = switch[2:].rpartition(".")
+    off = f"--{section}.no-{name}" if section else f"--no-{name}"
+    return f"{switch} is a switch and takes no value, got {token!r}: give {switch} to turn it on, {off} to turn it off"
+
+
 def _first_message(box: str) -> str:
     """The first paragraph of tyro's boxed error message, as one line."""
     lines = []
     for line in box.splitlines()[1:]:
         text = line.strip().strip("│╭╮╰╯").strip()
-        if set(text) <= set("─ "):
+        if set(text) <= set("─- "):
             if lines:
                 break
             continue
@@ -206,22 +221,33 @@ def _differences(before, after, prefix: str = "", skip: tuple[str, ...] = ()) ->
     return flags
 
 
+def _named_folders(*flags: tuple[str, str]) -> None:
+    """Folders a command writes into must be named: "" would be the working directory (only
+    demo-bandit takes "", for a temporary folder)."""
+    for flag, path in flags:
+        if not path.strip():
+            raise UsageError(f"{flag} must name a folder, got {path!r}")
+
+
 def cmd_demos(argv: list[str]) -> int:
-    from stepnft.data.demos import generate_demos
+    from stepnft.data.demos import check_task_episodes, generate_demos
     from stepnft.envs import get_simulator
 
     from stepnft.config import DemosCommand
 
     args = _parse(DemosCommand, argv, DemosCommand(), "stepnft demos")
+    _named_folders(("--demos.path", args.demos.path))
     sim = get_simulator(args.env.name)
     tasks = sim.validate_tasks(args.env.tasks)
-    _writable_dir(args.demos.path, "--demos.path")
-    path = generate_demos(tasks, args.demos.episodes, args.demos.path, seed=args.demos.seed,
+    check_task_episodes(args.demos, tasks)
+    episodes = max(args.demos.count(t) for t in tasks)
+    # generate_demos checks the folder (new or empty) before it builds an env.
+    path = generate_demos(tasks, episodes, args.demos.path, seed=args.demos.seed,
                           action_noise=args.demos.action_noise, max_episode_steps=args.env.max_episode_steps,
                           simulator=sim, max_attempts=args.demos.max_attempts, cameras=args.env.cameras,
-                          image_size=args.env.image_size)
+                          image_size=args.env.image_size, successful_only=args.demos.successful_only)
     discarded = json.loads((path / "manifest.json").read_text())["generator"]["discarded"]
-    print(f"wrote {args.demos.episodes} successful episodes x {len(tasks)} tasks to {path} "
+    print(f"wrote {episodes} {'successful ' * args.demos.successful_only}episodes x {len(tasks)} tasks to {path} "
           f"(failed expert attempts discarded: {sum(discarded.values())})")
     return 0
 
@@ -230,6 +256,7 @@ def cmd_sft(argv: list[str]) -> int:
     from stepnft.train import run_sft
 
     cfg, _ = _config_from_argv(argv, "stepnft sft", allow_resume=False)
+    _named_folders(("--run-dir", cfg.run_dir), ("--demos.path", cfg.demos.path))
     run_sft(cfg)
     return 0
 
@@ -238,6 +265,7 @@ def cmd_train(argv: list[str]) -> int:
     from stepnft.train import train
 
     cfg, resume = _config_from_argv(argv, "stepnft train", allow_resume=True)
+    _named_folders(("--run-dir", cfg.run_dir), ("--demos.path", cfg.demos.path))
     train(cfg, resume=resume)
     return 0
 
@@ -247,6 +275,7 @@ def cmd_eval(argv: list[str]) -> int:
     from stepnft.envs.base import RenderingError
     from stepnft.policies.base import load_policy
     from stepnft.runs import write_atomic
+    from stepnft.runs import check_folder
     from stepnft.suites import (check_suites, evaluate_suite, evaluate_suites, format_suite, format_suites,
                                 record_suite_videos)
 
@@ -258,10 +287,11 @@ def cmd_eval(argv: list[str]) -> int:
     sim = get_simulator(args.env.name)
     args.env.tasks = sim.validate_tasks(args.env.tasks)
     suites = check_suites(args.suite)
+    # Fail on an output that cannot be written before spending time on the policy and episodes.
+    out = _eval_out(args.out) if args.out else None
+    video_dir = check_folder(args.video_dir, "videos", "--video-dir") if args.video_dir else None
     policy = load_policy(args.policy).to(device)
-    # Fail on an unwritable output before spending time on episodes.
-    out = _writable_dir(Path(args.out).parent, "--out") / Path(args.out).name if args.out else None
-    video_dir = _writable_dir(args.video_dir, "--video-dir") if args.video_dir else None
+    _check_samples(policy, args.env, args.eval.seed, args.policy)
     if args.eval.episodes > 0:
         if len(suites) == 1:
             result = evaluate_suite(policy, args.env, suites[0], args.eval.episodes, args.eval.seed)
@@ -283,15 +313,51 @@ def cmd_eval(argv: list[str]) -> int:
     return 0
 
 
-def _writable_dir(path: str | Path, flag: str) -> Path:
-    """Create folder ``path`` if needed and check a file can be written there."""
+def _eval_out(path: str) -> Path:
+    """``eval --out``: a new file, or the results of an earlier evaluation (replaced); its folder
+    is created and checked writable."""
     from stepnft.runs import prepare_run_dir
 
+    out = Path(path)
+    if out.is_dir():
+        raise UsageError(f"--out {out} is a folder: give a file name, e.g. --out {out / 'eval.json'}")
+    if out.exists() and not _holds_eval_results(out):
+        raise UsageError(f"{out} exists and holds no stepnft eval results: choose another --out (a new file)")
+    prepare_run_dir(out.parent, flag="--out")
+    return out
+
+
+def _holds_eval_results(path: Path) -> bool:
     try:
-        return prepare_run_dir(path)
-    except ValueError as err:
-        reason = getattr(err.__cause__, "strerror", None) or err
-        raise UsageError(f"cannot write to {path} ({reason}): choose another {flag}") from err
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and ("tasks" in data or "suites" in data)
+
+
+def _check_samples(policy, env_cfg, seed: int, where: str) -> None:
+    """Refuse a policy that samples non-finite actions in the first test state of the first
+    task (a run that diverged could save one before saved policies were checked): evaluating it
+    would feed NaN to the simulator."""
+    import torch
+
+    from stepnft.envs import make_vec_env
+    from stepnft.policies.base import non_finite_samples
+    from stepnft.suites import env_for_policy
+
+    env_cfg = dataclasses.replace(env_for_policy(env_cfg, policy.config), tasks=env_cfg.tasks[:1], envs_per_task=1,
+                                  num_workers=0)
+    venv = make_vec_env(env_cfg, policy.config.n_exec, seed)
+    try:
+        obs, _ = venv.reset(seed=[seed])
+        raw = {k: torch.as_tensor(v) for k, v in obs.items()} | {"task": torch.as_tensor(venv.task_ids)}
+        with policy.processor.bound(venv.instruction_variants):
+            bad = non_finite_samples(policy, raw)
+    finally:
+        venv.close()
+    if bad:
+        raise ValueError(f"the policy at {where} samples non-finite actions ({', '.join(bad)}) in the first test state: "
+                         "it cannot be evaluated (a run that diverged saved it: train again with a smaller --algo.lr)")
 
 
 def cmd_demo_bandit(argv: list[str]) -> int:

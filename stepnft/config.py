@@ -30,6 +30,8 @@ from stepnft.settings import Check, Range, Settings
 
 DEVICE = Check(check_device_name, "cpu, cuda or cuda:N")
 """The devices a policy may compute on (``--device``)."""
+PATH = Check(lambda path: bool(path.strip()), "a path (not empty)")
+"""A file or folder a command reads or writes: "" would silently mean the working directory."""
 
 
 @dataclass
@@ -153,7 +155,7 @@ class RayConfig(Settings):
     """Ray rollout workers (0: collect in this process, the default); sub-env i plays on worker
     i mod N, and evaluation runs on them too. Each reserves max(1, env.num_workers) CPUs: with
     --env.num-workers 0 a worker is one core."""
-    address: str | None = None
+    address: Annotated[str | None, Check(lambda address: bool(address.strip()), "a cluster address")] = None
     """Ray cluster to join (``auto``, ``HOST:6379`` or ``ray://HOST:10001``); None: start a
     local Ray with the CPUs the workers reserve."""
     timeout_s: Annotated[float, Range(gt=0)] = 600.0
@@ -196,7 +198,7 @@ class TrainConfig(Settings):
     env_step_budget: Annotated[int | None, Range(ge=1)] = None
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
-    init: str | None = None
+    init: Annotated[str | None, PATH] = None
     """Saved policy folder to start from; None: run few-shot SFT on the demonstrations first.
     ``stepnft sft --init``: the policy SFT fine-tunes (any type, e.g. a LeRobot SmolVLA folder,
     whose sizes then replace the --policy.* ones; docs/lerobot.md)."""
@@ -236,11 +238,11 @@ class DemosCommand(Settings):
 class EvalCommand(Settings):
     """Evaluate a saved policy on a fixed, seeded set of initial states (ODE sampling)."""
 
-    policy: str = "runs/stepnft/policy"
+    policy: Annotated[str, PATH] = "runs/stepnft/policy"
     """Policy folder (config.json + model.safetensors), e.g. RUN/policy or RUN/sft_policy."""
-    out: str | None = None
+    out: Annotated[str | None, PATH] = None
     """Also write the results as JSON to this file."""
-    video_dir: str | None = None
+    video_dir: Annotated[str | None, PATH] = None
     """Also record ODE episodes as ``DIR/<task>_ep<e>_<success|fail>.mp4`` (needs offscreen
     rendering: MUJOCO_GL=egl)."""
     video_episodes: Annotated[int, Range(ge=1)] = 1
@@ -296,6 +298,8 @@ def save_config(cfg, path: str | Path) -> None:
 def load_config(path: str | Path, cls=TrainConfig):
     """Read a YAML config; raise ValueError with one actionable line when it is bad."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"config file {path} is a folder: give a YAML file (a run's config is RUN/config.yaml)")
     if not path.is_file():
         raise ValueError(f"config file {path} not found")
     try:

@@ -28,8 +28,9 @@ def write_atomic(path: str | Path, data: str | bytes) -> None:
         raise
 
 
-def prepare_run_dir(path: str | Path, must_exist: bool = False) -> Path:
-    """Create ``path`` and check it is writable; ValueError with one line otherwise."""
+def prepare_run_dir(path: str | Path, must_exist: bool = False, flag: str = "--run-dir") -> Path:
+    """Create ``path`` and check it is writable; ValueError with one line (naming the option
+    ``flag`` that chose it) otherwise."""
     run_dir = Path(path)
     if must_exist and not run_dir.is_dir():
         raise ValueError(f"run directory {run_dir} does not exist: nothing to resume")
@@ -39,7 +40,7 @@ def prepare_run_dir(path: str | Path, must_exist: bool = False) -> Path:
         probe.write_text("ok")
         probe.unlink()
     except OSError as err:
-        raise ValueError(f"cannot write to {run_dir} ({err.strerror}): choose another --run-dir") from err
+        raise ValueError(f"cannot write to {run_dir} ({err.strerror}): choose another {flag}") from err
     return run_dir
 
 
@@ -66,14 +67,56 @@ def run_kind(run_dir: Path) -> str | None:
 def check_free(run_dir: Path) -> None:
     """A new run must not overwrite anything: refuse a folder that already holds something."""
     held = run_kind(run_dir)
-    if held == "train":
+    checkpoints = run_dir / "checkpoints"
+    if held == "train" and ((checkpoints / "LATEST").is_file() or any(checkpoints.glob("iter_*"))):
         raise ValueError(f"{run_dir} already holds a training run: continue it with `stepnft train --resume {run_dir}`, "
                          "or choose another --run-dir")
+    if held == "train":
+        raise ValueError(f"{run_dir} already holds a training run without a checkpoint to continue from: choose "
+                         f"another --run-dir, or delete that one (`rm -r {run_dir}`)")
     if held == "sft":
-        raise ValueError(f"{run_dir} already holds an SFT run: start RL from it with `--init {run_dir}/policy` and "
-                         "another --run-dir")
+        raise ValueError(f"{run_dir} already holds an SFT run: start RL from it with `stepnft train --config "
+                         f"{run_dir}/config.yaml --init {run_dir}/policy --run-dir NEW_DIR`, or choose another --run-dir")
     if held is not None:
         raise ValueError(f"{run_dir} is not empty: choose another --run-dir (a run folder holds one run only)")
+
+
+FOLDER_KINDS = {"train": "a training run", "sft": "an SFT run", "demos": "demonstrations",
+                "comparison": "a comparison (stepnft compare)", "videos": "videos"}
+"""What a folder a command writes into may hold, by :func:`folder_kind`."""
+
+
+def folder_kind(path: Path) -> str | None:
+    """What folder ``path`` holds: a run (``train``, ``sft``: :func:`run_kind`), ``demos`` (a
+    demonstrations manifest), ``comparison`` (``compare.json``), ``videos`` (.mp4 files only),
+    ``other`` for anything else; None when it is missing or empty (hidden files aside)."""
+    kind = run_kind(path)
+    if kind != "other":
+        return kind
+    if (path / "manifest.json").is_file():
+        return "demos"
+    if (path / "compare.json").is_file():
+        return "comparison"
+    videos = False
+    for file in path.rglob("*"):
+        if file.is_file() and not file.name.startswith("."):
+            if file.suffix != ".mp4":
+                return "other"
+            videos = True
+    return "videos" if videos else "other"
+
+
+def check_folder(path: str | Path, kind: str, flag: str) -> Path:
+    """The folder a command writes ``kind`` (a key of :data:`FOLDER_KINDS`) into, given by
+    option ``flag``: refused, before any work, if it holds anything else; else created and
+    checked writable (:func:`prepare_run_dir`)."""
+    path = Path(path)
+    held = folder_kind(path) if path.is_dir() else None
+    if held not in (None, kind):
+        what = FOLDER_KINDS.get(held) or "other files (" + ", ".join(sorted(
+            p.name for p in path.iterdir() if not p.name.startswith("."))[:3]) + ")"
+        raise ValueError(f"{path} holds {what}, not {FOLDER_KINDS[kind]}: choose another {flag} (a new or empty folder)")
+    return prepare_run_dir(path, flag=flag)
 
 
 def mark_run(run_dir: Path, kind: str) -> None:

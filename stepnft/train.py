@@ -28,12 +28,12 @@ from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, save_config
-from stepnft.data.demos import load_or_generate_demos
+from stepnft.data.demos import check_task_episodes, load_or_generate_demos
 from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
 from stepnft.envs.base import RenderingError
 from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks_below
-from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite
+from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite, non_finite_samples, probe_rows
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
 from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
@@ -85,6 +85,8 @@ class TrainingRun:
         self.algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
         self.allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
         self.progress = Progress()
+        self.probe: dict | None = None
+        """A few raw observations of the last batch: every policy saved must sample finite actions on them."""
 
     # --- start ------------------------------------------------------------------------------
     @classmethod
@@ -140,8 +142,19 @@ class TrainingRun:
         torch.set_rng_state(state["torch_rng"])
 
     def save_checkpoint(self) -> None:
+        for policy in dict.fromkeys([self.policy, self.algo.eval_policy()]):
+            self.check_samples(policy)
         with self.progress.timed("checkpoints"):
             save_checkpoint(self.run_dir, self.progress.iteration, self.policy, self.state_dict())
+
+    def check_samples(self, policy: Policy) -> None:
+        """Stop the run (RunDiverged) if ``policy`` samples non-finite actions on :attr:`probe`:
+        finite weights may still overflow, and such a policy is never saved."""
+        bad = non_finite_samples(policy, self.probe, self.cfg.algo.noise_level) if self.probe is not None else []
+        if bad:
+            raise RunDiverged(f"the policy samples non-finite actions ({', '.join(bad)}) after iteration "
+                              f"{self.progress.iteration} (algo.lr={self.cfg.algo.lr:g} too large?): it is not saved; "
+                              "the last checkpoint is intact")
 
     # --- the loop -----------------------------------------------------------------------------
     def out_of_budget(self) -> bool:
@@ -154,6 +167,7 @@ class TrainingRun:
         with progress.timed("rollouts"):
             task_episodes = self.allocator.allocate(cfg.episodes_per_iteration, algo.rollout.group_size)
             batch = self.collector.collect(algo.acting_policy(), cfg.episodes_per_iteration, algo.rollout, task_episodes)
+            self.probe = probe_rows(batch.obs)
         distributed.broadcast((batch, progress.iteration, torch.get_rng_state()))
         t1 = time.perf_counter()
         with progress.timed("updates"):
@@ -166,6 +180,7 @@ class TrainingRun:
         t2 = time.perf_counter()
         progress.iteration += 1
         progress.env_steps += batch.env_steps
+        self.check_samples(algo.acting_policy())  # before it plays NaN actions in the next iteration
         return {"iteration": progress.iteration, "env_steps": progress.env_steps, **_rollout_record(batch, self.tasks),
                 "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
                 "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **self.collector.pop_metrics()}
@@ -173,6 +188,7 @@ class TrainingRun:
     def validate(self) -> dict:
         """The evaluated policy on the validation states; kept as ``best_policy/`` if best so far."""
         current = self.algo.eval_policy()
+        self.check_samples(current)
         with self.progress.timed("validation"):
             result = self.evaluate(current, self.cfg.eval.during_episodes, self.cfg.eval.validation_seed)
         if result["average"] > self.progress.best["validation"]:
@@ -216,6 +232,7 @@ def _finish(run: TrainingRun, logger: MetricLogger, sim, log) -> dict:
     final policy), videos, curves and ``summary.json``."""
     cfg, run_dir, tasks, progress = run.cfg, run.run_dir, run.tasks, run.progress
     final = run.algo.eval_policy()
+    run.check_samples(final)
     with progress.timed("test_eval"):
         after = run.evaluate(final, cfg.eval.episodes, cfg.eval.seed)
     final.save_pretrained(run_dir / "policy")
@@ -290,6 +307,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     resolve_device(cfg.device)  # before anything is created: no CUDA here is one line, exit code 2
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
+    check_task_episodes(cfg.demos, tasks)
     state_dim = sim.state_dim_for(cfg.env.state_obs)
     # An --init policy of another type (e.g. a LeRobot SmolVLA) brings its own sizes.
     policy_cfg = load_policy_config(cfg.init) if cfg.init else cfg.policy

@@ -323,7 +323,7 @@ def test_runs_never_overwrite_each_other(capsys, workspace, tmp_path):
     (sft_run / "config.yaml").write_text("seed: 0\n")
     before = snapshot(sft_run)
     line = assert_one_line_error(*run_cli(capsys, "train", "--run-dir", sft_run)[::2], "train")
-    assert "already holds an SFT run: start RL from it with `--init" in line
+    assert f"already holds an SFT run: start RL from it with `stepnft train --config {sft_run}/config.yaml --init" in line
     line = assert_one_line_error(*run_cli(capsys, "sft", "--run-dir", workspace / "run")[::2], "sft")
     assert "already holds a training run: continue it with `stepnft train --resume" in line
     stray = tmp_path / "stray"

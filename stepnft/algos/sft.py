@@ -19,11 +19,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from stepnft.algos.base import RunDiverged
 from stepnft.data.demos import DemoEpisode, demos_to_chunks, load_or_generate_demos
 from stepnft.devices import to_device
 from stepnft.envs import get_simulator
 from stepnft.losses import flow_matching_loss
-from stepnft.policies.base import Policy, load_policy, make_policy
+from stepnft.policies.base import Policy, load_policy, make_policy, non_finite_samples, probe_rows
 from stepnft.policies.vision import random_shift
 from stepnft.sampling import flow_matching_pair, sample_flow_time
 from stepnft.settings import Range, Settings
@@ -138,4 +139,8 @@ def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, 
     if losses:
         log(f"SFT: {len(data['actions'])} chunks from {len(episodes)} demos, "
             f"loss {np.mean(losses[:50]):.3f} -> {np.mean(losses[-50:]):.3f}")
+    bad = non_finite_samples(policy, probe_rows(data["obs"]))
+    if bad:  # never saved: every later stage would act on NaN
+        raise RunDiverged(f"the SFT policy samples non-finite actions ({', '.join(bad)}) on its demonstrations "
+                          f"(sft.lr={sft_cfg.lr:g} too large?): it is not saved")
     return policy

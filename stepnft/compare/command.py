@@ -51,6 +51,11 @@ class CompareCommand:
         unknown = [a for a in self.algos if a not in VARIANTS]
         if not self.algos or unknown:
             raise ValueError(f"--algos {','.join(unknown) or '(none)'}: choose from {', '.join(VARIANTS)}")
+        if self.reference not in VARIANTS:
+            raise ValueError(f"--reference must be one of {', '.join(VARIANTS)}, got {self.reference!r}")
+        for flag, path in (("--config", self.config), ("--out", self.out)):
+            if not path.strip():
+                raise ValueError(f"{flag} must be a path (not empty), got {path!r}")
         if not self.seeds or any(s < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"--seeds must be distinct integers >= 0, got {self.seeds}")
         if self.jobs < 0:

@@ -14,8 +14,9 @@ from pathlib import Path
 from stepnft.algos.variants import variant_config
 from stepnft.compare.command import CompareCommand
 from stepnft.config import TrainConfig, load_config, to_dict
+from stepnft.data.demos import check_task_episodes
 from stepnft.envs import get_simulator
-from stepnft.runs import prepare_run_dir, write_atomic
+from stepnft.runs import check_folder, write_atomic
 
 SFT = "sft"
 """The row of the SFT start in the report."""
@@ -48,7 +49,7 @@ def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     except ValueError as err:
         raise ValueError(f"{err} (--tasks, --env-steps and --eval-episodes set env.tasks, env_step_budget and "
                          "eval.episodes)") from None
-    get_simulator(cfg.env.name).validate_tasks(cfg.env.tasks)
+    check_task_episodes(cfg.demos, get_simulator(cfg.env.name).validate_tasks(cfg.env.tasks))
     if cfg.env_step_budget is None:
         raise ValueError("a comparison needs one env-step budget: pass --env-steps N (or set env_step_budget in --config)")
     if cfg.eval.episodes < 1:
@@ -63,7 +64,7 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
     base = comparison_config(loaded, cmd)
     # As given (relative to the working directory, as every run's --run-dir): the saved configs
     # then move with the folder.
-    out = prepare_run_dir(cmd.out)
+    out = check_folder(cmd.out, "comparison", "--out")  # a new folder, or the comparison to resume
     check_same_settings(out / "compare.json", comparison_settings(base))
     sft_jobs, run_jobs = [], []
     for seed in cmd.seeds:

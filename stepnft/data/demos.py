@@ -49,10 +49,10 @@ from tqdm import tqdm
 
 from stepnft.envs import get_simulator
 from stepnft.envs.episodes import DemoEpisode
-from stepnft.runs import write_atomic
+from stepnft.runs import check_folder, write_atomic
 
-__all__ = ["DemoEpisode", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos", "load_demos",
-           "load_or_generate_demos"]
+__all__ = ["DemoEpisode", "check_task_episodes", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos",
+           "load_demos", "load_or_generate_demos"]
 
 FORMAT = "stepnft-demos"
 VERSION = 1
@@ -87,7 +87,8 @@ def generate_demos(
     Episodes end at the first success or after `max_episode_steps` steps. Gaussian noise of
     std `action_noise` is added to each expert action before clipping to [-1, 1].
     `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`. With
-    `cameras`, every step's camera views are recorded too (``images``).
+    `cameras`, every step's camera views are recorded too (``images``). `out_dir` must be new
+    or empty; if generation fails, the files it wrote are removed again.
     """
     sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
     tasks = sim.validate_tasks(tasks)
@@ -97,16 +98,26 @@ def generate_demos(
     if (out_dir / "manifest.json").is_file():
         raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
                          "(--demos.path), or delete that one to regenerate it")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    created = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # removed again if generation fails
+    check_folder(out_dir, "demos", "--demos.path")
     settings = {"episodes_per_task": episodes, "max_attempts": max_attempts, "seed": seed, "action_noise": action_noise,
                 "max_episode_steps": max_episode_steps,
                 **({"cameras": list(cameras), "image_size": image_size} if cameras else {})}
     entries, discarded = [], {}
-    with tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress, mininterval=1.0) as bar:
-        for task in tasks:
-            kept, discarded[task] = _record_task(sim, task, out_dir, bar, successful_only=successful_only, **settings)
-            entries += kept
-    write_atomic(out_dir / "manifest.json", json.dumps(_manifest(sim, tasks, entries, discarded, settings), indent=1))
+    try:
+        with tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress,
+                  mininterval=1.0) as bar:
+            for task in tasks:
+                discarded[task] = _record_task(sim, task, out_dir, bar, successful_only=successful_only,
+                                               written=entries, **settings)
+        write_atomic(out_dir / "manifest.json", json.dumps(_manifest(sim, tasks, entries, discarded, settings), indent=1))
+    except BaseException:  # no episode files without their manifest: a rerun starts from an empty folder
+        for entry in entries:
+            (out_dir / entry["file"]).unlink(missing_ok=True)
+        for folder in [out_dir / t for t in tasks] + created:
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise
     return out_dir
 
 
@@ -122,10 +133,11 @@ def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise:
 
 
 def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, max_attempts: int, seed: int,
-                 action_noise: float, max_episode_steps: int, successful_only: bool, cameras: Sequence[str] = (),
-                 image_size: int = 64) -> tuple[list[dict], int]:
+                 action_noise: float, max_episode_steps: int, successful_only: bool, written: list[dict],
+                 cameras: Sequence[str] = (), image_size: int = 64) -> int:
     """Expert attempts at ``task`` until ``episodes_per_task`` are kept, each written to
-    ``out_dir/task/``; returns their manifest entries and the number of attempts discarded."""
+    ``out_dir/task/`` and its manifest entry appended to ``written`` as soon as it is on disk;
+    returns the number of attempts discarded."""
     camera_options = {"cameras": list(cameras), "image_size": image_size} if cameras else {}
     expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
     env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, **camera_options)
@@ -137,7 +149,8 @@ def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, 
         while len(entries) < episodes_per_task:
             if attempts == max_attempts:
                 raise ValueError(f"the {sim.label} expert succeeded on only {len(entries)} of {attempts} attempts at "
-                                 f"{task} (cap {max_attempts}): ask for fewer episodes or raise the attempt cap")
+                                 f"{task}: raise --demos.max-attempts above {max_attempts}, or ask for fewer than "
+                                 f"{episodes_per_task} episodes (--demos.episodes); nothing was written")
             episode = _run_expert(env, sim.instruction(task), expert, noise_rng, action_noise,
                                   demo_seed(seed, attempts), task)
             attempts += 1
@@ -147,11 +160,12 @@ def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, 
             write_atomic(out_dir / file, _npz_bytes(episode))
             entries.append({"file": file, "task": task, "instruction": episode.instruction, "success": episode.success,
                             "length": len(episode.actions), "seed": episode.seed})
+            written.append(entries[-1])
             bar.update()
             bar.set_postfix(task=task, discarded=attempts - len(entries), refresh=False)
     finally:
         env.close()
-    return entries, attempts - len(entries)
+    return attempts - len(entries)
 
 
 def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, int], settings: dict) -> dict:
@@ -225,7 +239,8 @@ def load_demos(path: str | Path, simulator=None, cameras: Sequence[str] = (), im
         raise FileNotFoundError(
             f"no demonstrations at {path}: run `stepnft demos --demos.path {path}` first"
         )
-    regenerate = f"run `stepnft demos --demos.path {path}` to regenerate them"
+    regenerate = (f"delete the folder (`rm -r {path}`) and generate them again (`stepnft train` and `stepnft sft` do "
+                  "so themselves), or point --demos.path at another folder")
     try:
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
@@ -255,6 +270,7 @@ def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], N
     cameras and image size) or a dataset in the simulator's own format."""
     path = Path(demos_cfg.path)
     tasks = simulator.validate_tasks(env_cfg.tasks)
+    check_task_episodes(demos_cfg, tasks)
     cameras, image_size = list(env_cfg.cameras), env_cfg.image_size
     has_manifest = (path / "manifest.json").is_file()
     own_dataset = not has_manifest and simulator.has_dataset(path)  # read at the env's cameras and size
@@ -275,9 +291,17 @@ def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], N
     short = [t for t, kept in per_task.items() if len(kept) < demos_cfg.count(t)]
     if short:
         raise ValueError(f"demonstrations in {path} have too few {'successful ' * demos_cfg.successful_only}episodes "
-                         f"of {short}: run `stepnft demos --env.tasks ... --demos.episodes N --demos.path {path}` with a "
-                         "larger N, or point --demos.path at a new folder")
+                         f"of {short}: point --demos.path at a new folder (the run generates enough there), or delete "
+                         f"this one (`rm -r {path}`)")
     return [e for kept in per_task.values() for e in kept]
+
+
+def check_task_episodes(demos_cfg, tasks: Sequence[str]) -> None:
+    """``demos_cfg.task_episodes`` may name only the ``tasks`` generated or trained on."""
+    unknown = [t for t in demos_cfg.task_episodes if t not in tasks]
+    if unknown:
+        raise ValueError(f"--demos.task-episodes names {', '.join(unknown)}, not among the tasks ({', '.join(tasks)}): "
+                         "give counts for those tasks only, or add them to --env.tasks")
 
 
 def demo_cameras(path: str | Path) -> tuple[list[str], int | None]:

@@ -49,6 +49,40 @@ def non_finite(tensors: dict[str, Tensor]) -> list[str]:
     return [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
+PROBE_ROWS = 8
+"""Observations a saved policy is checked on (:func:`non_finite_samples`)."""
+
+
+def probe_rows(obs: dict[str, Tensor], rows: int = PROBE_ROWS) -> dict[str, Tensor]:
+    """At most ``rows`` raw observations spread evenly over ``obs`` (``[N, ...]`` per key), e.g.
+    over a rollout batch's calls or the demonstrations' steps, kept on the CPU."""
+    n = next(iter(obs.values())).shape[0]
+    idx = torch.linspace(0, n - 1, min(rows, n)).round().long()
+    return {k: v[idx].cpu() for k, v in obs.items()}
+
+
+@torch.no_grad()
+def non_finite_samples(policy: "Policy", raw_obs: dict[str, Tensor], noise_level: float = 0.5) -> list[str]:
+    """The samplers (``ODE``, ``Flow-SDE`` at ``noise_level``) whose env actions for the raw
+    observations ``raw_obs`` (``[B, ...]``, e.g. :func:`probe_rows`) are not all finite: a policy
+    with finite weights may still overflow while sampling. Draws its noise from its own
+    generator and leaves every module's train/eval mode as it was, so no random stream or
+    result of the caller changes. ``policy.processor`` must be bound (as for sampling)."""
+    modes = [(m, m.training) for m in policy.modules()]
+    policy.eval()
+    try:
+        obs = policy.prepare(raw_obs)
+        bad = []
+        for name, level in (("ODE", 0.0), ("Flow-SDE", noise_level)):
+            chunk = policy.sample(obs, noise_level=level, generator=torch.Generator().manual_seed(0)).actions
+            if not bool(torch.isfinite(policy.env_actions(chunk.cpu())).all()):
+                bad.append(name)
+        return bad
+    finally:
+        for module, training in modes:
+            module.training = training
+
+
 class PolicyUnavailable(ValueError):
     """A registered policy type whose optional extra (e.g. LeRobot) is not installed here."""
 
@@ -152,13 +186,10 @@ class Policy(nn.Module, ABC):
         """Load a saved policy of any registered type (or of ``cls``'s type when called on a
         subclass); a ValueError with one line if the folder is missing, corrupt or another type."""
         directory = Path(directory)
-        config_path = directory / CONFIG_NAME
-        if not config_path.is_file():
+        if not (directory / CONFIG_NAME).is_file():
             raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME} and {WEIGHTS_NAME}")
         try:
-            data = json.loads(config_path.read_text())
-            if not isinstance(data, dict):
-                raise ValueError(f"{CONFIG_NAME} must hold a JSON object")
+            data = _config_data(directory)
             type_name = data.pop("type", "flow")
             target = policy_class(type_name)
             if cls is not Policy and not issubclass(target, cls):
@@ -192,9 +223,17 @@ class Policy(nn.Module, ABC):
     @classmethod
     def read_config(cls, directory: Path):
         """The config of the policy saved in ``directory``, without building the policy."""
-        data = json.loads((directory / CONFIG_NAME).read_text())
+        data = _config_data(directory)
         data.pop("type", None)
         return cls.config_class.from_dict(data)
+
+
+def _config_data(directory: Path) -> dict:
+    """The JSON object in ``directory/config.json``; ValueError if it holds anything else."""
+    data = json.loads((directory / CONFIG_NAME).read_text())
+    if not isinstance(data, dict):
+        raise ValueError(f"{CONFIG_NAME} must hold a JSON object, not a {type(data).__name__}")
+    return data
 
 
 def load_policy(directory: str | Path) -> Policy:
@@ -209,8 +248,7 @@ def load_policy_config(directory: str | Path):
     if not (directory / CONFIG_NAME).is_file():
         raise FileNotFoundError(f"no policy checkpoint at {directory}: expected {CONFIG_NAME}")
     try:
-        type_name = json.loads((directory / CONFIG_NAME).read_text()).get("type", "flow")
-        return policy_class(type_name).read_config(directory)
+        return policy_class(_config_data(directory).get("type", "flow")).read_config(directory)
     except PolicyUnavailable:
         raise
     except (ValueError, OSError, AttributeError, TypeError, KeyError, json.JSONDecodeError) as err:

@@ -103,4 +103,8 @@ class ObservationProcessor:
         for key in ("state_mean", "state_std"):
             if state[key].shape != self.state_mean.shape:
                 raise ValueError(f"processor {key} has shape {tuple(state[key].shape)}, expected {tuple(self.state_mean.shape)}")
+            if not bool(torch.isfinite(state[key]).all()):
+                raise ValueError(f"processor {key} holds non-finite values")
+        if not bool((state["state_std"] > 0).all()):
+            raise ValueError("processor state_std must be > 0 everywhere")
         self.state_mean, self.state_std = state["state_mean"].float(), state["state_std"].float()

@@ -102,9 +102,39 @@ def test_a_missing_expert_draws_more_states_until_n_successes(tmp_path):
     assert sorted(e.seed for e in episodes)[-1] == demo_seed(0, discarded + 1)
     assert sorted(p.name for p in (out / "reach-v3").iterdir()) == ["episode_0000.npz", "episode_0001.npz"]
 
-    with pytest.raises(ValueError, match=r"succeeded on only \d of 3 attempts at reach-v3 \(cap 3\)"):
-        generate_demos("reach-v3", 3, tmp_path / "capped", action_noise=3.0, max_episode_steps=30, progress=False,
+    capped = tmp_path / "capped"
+    with pytest.raises(ValueError, match=r"succeeded on only \d of 3 attempts at reach-v3: raise --demos.max-attempts"):
+        generate_demos("reach-v3", 3, capped, action_noise=3.0, max_episode_steps=30, progress=False,
                        max_attempts=3, simulator="metaworld")
+    assert not capped.exists()  # no episode files without a manifest: a rerun starts afresh
+
+
+class _IdleOnPush:
+    """MetaWorld, but the push-v3 expert does nothing (so it never succeeds)."""
+
+    def __init__(self):
+        self.sim = get_simulator("metaworld")
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+    def expert(self, task, seed):
+        return self.sim.expert(task, seed) if task != "push-v3" else type("Idle", (), {"act": lambda s, o: np.zeros(4)})()
+
+
+def test_a_failed_generation_removes_what_it_wrote(tmp_path):
+    """The reach-v3 episode already on disk when generation fails (the attempt cap at push-v3)
+    is removed with the folders generation created; a folder that existed is left, empty."""
+    given = tmp_path / "given"
+    given.mkdir()
+    for out in (given, tmp_path / "new" / "demos"):
+        with pytest.raises(ValueError, match="succeeded on only 0 of 1 attempts at push-v3"):
+            generate_demos(["reach-v3", "push-v3"], 1, out, progress=False, max_attempts=1, max_episode_steps=100,
+                           simulator=_IdleOnPush())
+    assert list(given.iterdir()) == [] and not (tmp_path / "new").exists()
+    # ... so a rerun in the same folder works at once
+    generate_demos("reach-v3", 1, given, progress=False, max_episode_steps=100, simulator="metaworld")
+    assert len(load_demos(given)) == 1
 
 
 def make_episode(task, actions, success=True):
@@ -168,7 +198,7 @@ def test_load_demos_explains_missing_or_corrupt_folders(tmp_path, reach_demos):
     corrupt = tmp_path / "corrupt"
     corrupt.mkdir()
     (corrupt / "manifest.json").write_text('{"format": "stepnft-demos", "vers')
-    with pytest.raises(ValueError, match="corrupt demonstrations at .*stepnft demos --demos.path"):
+    with pytest.raises(ValueError, match=f"corrupt demonstrations at .*delete the folder \\(`rm -r {corrupt}`\\)"):
         load_demos(corrupt)
 
     (corrupt / "manifest.json").write_text(json.dumps({"format": "other", "version": 1}))
@@ -252,8 +282,10 @@ def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path):
     assert [e.seed for e in first] == [demo_seed(4, k) for k in range(3)]
     fewer = load_or_generate_demos(dataclasses.replace(demos, episodes=2), env, sim, lines.append)
     assert len(lines) == 1 and [e.seed for e in fewer] == [e.seed for e in first[:2]]  # read, not generated again
-    with pytest.raises(ValueError, match=r"too few episodes of \['bandit'\].*--demos.episodes N"):
+    with pytest.raises(ValueError, match=r"too few episodes of \['bandit'\]: point --demos.path at a new folder"):
         load_or_generate_demos(dataclasses.replace(demos, episodes=4), env, sim, lines.append)
+    more = dataclasses.replace(demos, episodes=4, path=str(tmp_path / "more"))  # the hint works
+    assert len(load_or_generate_demos(more, env, sim, lines.append)) == 4
     with pytest.raises(ValueError, match="too few successful episodes"):  # the expert misses most of them
         load_or_generate_demos(dataclasses.replace(demos, successful_only=True), env, sim, lines.append)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Annotated, ClassVar
 
-from stepnft.settings import Range, Settings
+from stepnft.settings import Check, Range, Settings
 
 
 @dataclass
@@ -21,7 +21,7 @@ class FlowPolicyConfig(Settings):
     """Size of the frozen instruction embedding (0: no language input)."""
     lang_proj_dim: Annotated[int, Range(ge=1)] = 64
     """The instruction embedding is projected to this size before the velocity MLP."""
-    language_encoder: str = "default"
+    language_encoder: Annotated[str, Check(lambda name: bool(name.strip()), "default or a folder")] = "default"
     """Frozen sentence encoder of the instructions: 'default' (packaged all-MiniLM-L6-v2) or a
     local sentence-transformers folder. Saved with the policy, so evaluation embeds alike."""
     action_dim: Annotated[int, Range(ge=1)] = 4
