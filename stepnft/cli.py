@@ -239,7 +239,7 @@ def cmd_demos(argv: list[str]) -> int:
     _named_folders(("--demos.path", args.demos.path))
     sim = get_simulator(args.env.name)
     tasks = sim.validate_tasks(args.env.tasks)
-    check_task_episodes(args.demos, tasks)
+    check_task_episodes(args.demos, sim)
     episodes = max(args.demos.count(t) for t in tasks)
     # generate_demos checks the folder (new or empty) before it builds an env.
     path = generate_demos(tasks, episodes, args.demos.path, seed=args.demos.seed,

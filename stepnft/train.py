@@ -307,7 +307,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     resolve_device(cfg.device)  # before anything is created: no CUDA here is one line, exit code 2
     sim = get_simulator(cfg.env.name)
     tasks = sim.validate_tasks(cfg.env.tasks)
-    check_task_episodes(cfg.demos, tasks)
+    check_task_episodes(cfg.demos, sim)
     state_dim = sim.state_dim_for(cfg.env.state_obs)
     # An --init policy of another type (e.g. a LeRobot SmolVLA) brings its own sizes.
     policy_cfg = load_policy_config(cfg.init) if cfg.init else cfg.policy

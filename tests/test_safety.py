@@ -244,11 +244,22 @@ def test_eval_out_is_checked_before_any_work(capsys, tmp_path, run_folder, reach
     assert code == 0 and json.loads(earlier.read_text())["episodes"] == 1
 
 
-def test_task_episodes_must_name_the_tasks(capsys, tmp_path):
+def test_task_episodes_must_name_tasks_of_the_simulator(capsys, tmp_path):
     for argv in (["demos", "--demos.path", tmp_path / "demos"], ["train", "--run-dir", tmp_path / "run"]):
         line = one_line_error(capsys, *argv, "--env.tasks", "reach-v3", "--demos.task-episodes", "nope-v3", 2)
-        assert "--demos.task-episodes names nope-v3, not among the tasks (reach-v3)" in line
+        assert "--demos.task-episodes names nope-v3, not a MetaWorld task" in line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_task_episodes_of_tasks_not_played_are_ignored():
+    """The quickstart config's counts (door-open, drawer-open) serve a run on any subset of tasks."""
+    from stepnft.config import DemoConfig
+    from stepnft.data.demos import check_task_episodes
+    from stepnft.envs import get_simulator
+
+    cfg = DemoConfig(episodes=3, task_episodes={"door-open-v3": 1})
+    check_task_episodes(cfg, get_simulator("metaworld"))  # the run may play only reach-v3
+    assert cfg.count("reach-v3") == 3 and cfg.count("door-open-v3") == 1
 
 
 def test_resume_follows_no_latest_out_of_its_run_and_says_how_to_repair_it(capsys, tmp_path):
