@@ -8,6 +8,7 @@ import csv
 import io
 import json
 import math
+import subprocess
 from pathlib import Path
 
 from stepnft.compare.command import CompareCommand, command_line
@@ -34,7 +35,7 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
 def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, status: dict) -> str:
     """The table of every row, the paired differences per task, the runs that crashed."""
     columns, ref, rows = summary["columns"], summary["reference"], summary["rows"]
-    lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "",
+    lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "", f"Code: {code_version()}.", "",
              f"RL budget {settings['env_step_budget']:,} env steps per run; seeds {', '.join(map(str, cmd.seeds))}; "
              f"ODE evaluation on {settings['eval']['episodes']} fixed initial states per task. Success: mean over "
              "seeds [95 % t-interval over seeds]. Δ: paired difference to "
@@ -70,6 +71,19 @@ def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, stat
 
 def _number(x: float, spec: str) -> str:
     return "–" if math.isnan(x) else format(x, spec)
+
+
+def code_version() -> str:
+    """The commit of the working directory when the report is written, and whether ``stepnft/``
+    differed from it (a rerun writes the report again: runs resumed then use that code)."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        commit, changed = git("rev-parse", "--short=12", "HEAD"), git("status", "--porcelain", "--", "stepnft")
+    except (OSError, subprocess.CalledProcessError):
+        return "not a git checkout"
+    return f"commit {commit}" + (" with uncommitted changes in stepnft/" if changed else "")
 
 
 def comparison_csv(summary: dict) -> str:
