@@ -12,13 +12,13 @@ import torch
 from torch import Tensor
 
 from stepnft.algos.base import Algorithm
-from stepnft.algos.likelihood import LikelihoodConfig, policy_gradient_update
+from stepnft.algos.likelihood import LikelihoodConfig, call_rewards, policy_gradient_update
 from stepnft.batch import Batch
 
 
 @dataclass
 class GRPOConfig(LikelihoodConfig):
-    """Hyperparameters of GRPO with Flow-SDE. ``minibatch_size`` counts policy calls."""
+    """Hyperparameters of GRPO with Flow-SDE."""
 
     defaults = {"name": "grpo", "group_size": 4}
 
@@ -29,33 +29,41 @@ class GRPOConfig(LikelihoodConfig):
                             self.group_size)
 
 
-def group_advantages(batch: Batch, eps: float = 1e-6) -> Tensor:
-    """``[E]`` per episode: ``(success - group mean) / (group std + eps)``, groups keyed by
-    ``(episode_task, episode_seed)``; std is the sample std (``n - 1``); 0 in a group whose
-    outcomes are all equal."""
+def episode_scores(batch: Batch, cfg: GRPOConfig) -> Tensor:
+    """``[E]`` what GRPO normalises: the sum of an episode's call rewards (``reward: sparse``: its
+    success 0/1; ``shaped``: success plus its last level minus its first, ``shaped_rewards`` with
+    ``γ = 1``)."""
+    return torch.zeros(batch.num_episodes).index_add_(0, batch.episode, call_rewards(batch, cfg))
+
+
+def group_advantages(batch: Batch, eps: float = 1e-6, score: Tensor | None = None) -> Tensor:
+    """``[E]`` per episode: ``(score - group mean) / (group std + eps)``, ``score`` ``[E]`` (None:
+    success), groups keyed by ``(episode_task, episode_seed)``; std is the sample std (``n - 1``);
+    0 in a group whose scores are all equal."""
     key = torch.stack([batch.episode_task, batch.episode_seed], dim=1)
     if bool((batch.episode_seed < 0).any()):
         raise ValueError("GRPO needs episodes grouped by a shared reset seed (RolloutSpec.group_size >= 2)")
     _, group = key.unique(dim=0, return_inverse=True)
-    success = batch.episode_success.float()
-    adv = torch.zeros_like(success)
+    score = batch.episode_success.float() if score is None else score
+    adv = torch.zeros_like(score)
     for g in group.unique():
         members = group == g
         if int(members.sum()) < 2:
             raise ValueError("a GRPO group holds a single episode: every group needs >= 2 episodes")
-        s = success[members]
-        adv[members] = (s - s.mean()) / (s.std() + eps)
+        s = score[members]
+        if bool((s != s[0]).any()):  # equal scores give 0 exactly, not rounding over eps
+            adv[members] = (s - s.mean()) / (s.std() + eps)
     return adv
 
 
 class GRPO(Algorithm):
-    """GRPO with Flow-SDE: the policy acts (no EMA), group-normalised success, no critic."""
+    """GRPO with Flow-SDE: the policy acts (no EMA), group-normalised success (or shaped return), no critic."""
 
     name = "grpo"
     config_class = GRPOConfig
 
     def update(self, batch: Batch) -> dict[str, float]:
-        episode_adv = group_advantages(batch)
+        episode_adv = group_advantages(batch, score=episode_scores(batch, self.cfg))
         self.policy.train()
         metrics = policy_gradient_update(self.policy, self.optimizer, batch, episode_adv[batch.episode], self.cfg,
                                          self.generator, guard=self.guard)

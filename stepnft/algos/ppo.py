@@ -1,9 +1,9 @@
 """PPO with Flow-SDE, the πRL baseline (docs/algorithm.md §7): the current policy acts with
 Flow-SDE and a call's log-likelihood is the log-density of its stochastic denoising steps
 (``stepnft.algos.likelihood``, shared with GRPO); a value head on the observation features gives
-GAE advantages over policy calls from the sparse success reward; the clipped surrogate and the
-value regression update policy and critic. Reads top to bottom: config, GAE, the critic, the
-class the training loop drives.
+GAE advantages over policy calls from the sparse success reward (or, with ``reward: shaped``, that
+plus shaping); the clipped surrogate and the value regression update policy and critic. Reads top
+to bottom: config, GAE, the critic, the class the training loop drives.
 """
 
 from __future__ import annotations
@@ -15,15 +15,16 @@ import torch
 from torch import Tensor, nn
 
 from stepnft.algos.base import Algorithm, NonFiniteGuard
-from stepnft.algos.likelihood import LikelihoodConfig, policy_gradient_update
+from stepnft.algos.likelihood import LikelihoodConfig, call_rewards, call_weights, policy_gradient_update
 from stepnft.batch import Batch
+from stepnft.devices import to_device
 from stepnft.policies.base import Policy
 from stepnft.settings import Range
 
 
 @dataclass
 class PPOConfig(LikelihoodConfig):
-    """Hyperparameters of PPO with Flow-SDE (πRL). ``minibatch_size`` counts policy calls."""
+    """Hyperparameters of PPO with Flow-SDE (πRL)."""
 
     defaults = {"name": "ppo"}
 
@@ -37,14 +38,15 @@ class PPOConfig(LikelihoodConfig):
     """Adam learning rate of the value head (its own optimizer)."""
     critic_hidden_dim: Annotated[int, Range(ge=1)] = 256
     """Width of the value head's two hidden layers."""
+    huber_delta: Annotated[float | None, Range(gt=0)] = None
+    """The critic's loss: Huber with this δ (RLinf: 10), None: ``0.5 (V - R)^2``. The two agree
+    while ``|V - R| < δ``."""
+    value_clip: Annotated[float | None, Range(gt=0)] = None
+    """Keep the critic's prediction within this of its value at rollout time, PPO-style: the loss
+    is the larger of the clipped and unclipped errors (RLinf: 0.2); None: off."""
 
 
 # --- advantages ---------------------------------------------------------------------------------
-def success_rewards(batch: Batch) -> Tensor:
-    """``[C]`` sparse reward: 1 at the last call of a successful episode, 0 elsewhere."""
-    return (batch.done & batch.episode_success[batch.episode]).float()
-
-
 def gae(reward: Tensor, value: Tensor, done: Tensor, episode: Tensor, gamma: float,
         lam: float) -> tuple[Tensor, Tensor]:
     """Advantages and returns ``[C]`` by GAE over policy calls: ``δ_n = r_n + γ V_{n+1} - V_n``,
@@ -77,6 +79,23 @@ class ValueHead(nn.Module):
         return self.net(features).squeeze(-1)
 
 
+def value_loss(value: Tensor, old_value: Tensor, returns: Tensor, cfg: PPOConfig,
+               weights: Tensor | None = None) -> Tensor:
+    """The critic's loss on ``[B]`` predictions ``value`` (with grad), their values at rollout
+    time ``old_value`` and the GAE ``returns``: squared error or Huber (``cfg.huber_delta``), with
+    ``cfg.value_clip`` the larger of the clipped and unclipped errors; mean with ``weights``."""
+    def error(v: Tensor) -> Tensor:
+        if cfg.huber_delta is None:
+            return 0.5 * (v - returns).pow(2)
+        return nn.functional.huber_loss(v, returns, reduction="none", delta=cfg.huber_delta)
+
+    loss = error(value)
+    if cfg.value_clip is not None:
+        clipped = old_value + (value - old_value).clamp(-cfg.value_clip, cfg.value_clip)
+        loss = torch.max(loss, error(clipped))
+    return loss.mean() if weights is None else (loss * weights).mean()
+
+
 def call_features(policy: Policy, batch: Batch) -> Tensor:
     """``[C, F]`` detached observation features of every policy call (on the policy's device)."""
     with torch.no_grad():
@@ -106,17 +125,21 @@ class PPO(Algorithm):
             self._build_critic(features.shape[1])
         with torch.no_grad():
             values = self.critic(features).cpu()  # GAE and the advantages: on the CPU, like the batch
-        advantages, returns = gae(success_rewards(batch), values, batch.done, batch.episode, cfg.gamma, cfg.gae_lambda)
+        advantages, returns = gae(call_rewards(batch, cfg, cfg.gamma), values, batch.done, batch.episode, cfg.gamma,
+                                  cfg.gae_lambda)
         explained = 1.0 - float((returns - values).var() / returns.var()) if returns.var() > 0 else float("nan")
         raw = {"charts/advantage_mean": float(advantages.mean()),
                "charts/advantage_std": float(advantages.std()) if len(advantages) > 1 else 0.0}
         if cfg.norm_adv and len(advantages) > 1:
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        weights = call_weights(batch, cfg)
 
         def critic_step(calls: Tensor) -> dict[str, float]:
-            value_loss = 0.5 * (self.critic(features[calls]) - returns[calls].to(features.device)).pow(2).mean()
-            self.critic_guard.step(value_loss, list(self.critic.parameters()), self.critic_optimizer)
-            return {"value_loss": value_loss.item()}
+            old, target, w = to_device((values[calls], returns[calls], None if weights is None else weights[calls]),
+                                       features.device)
+            loss = value_loss(self.critic(features[calls]), old, target, cfg, w)
+            self.critic_guard.step(loss, list(self.critic.parameters()), self.critic_optimizer)
+            return {"value_loss": loss.item()}
 
         self.policy.train()
         metrics = policy_gradient_update(self.policy, self.optimizer, batch, advantages, cfg, self.generator,

@@ -61,11 +61,6 @@ class StepNFTConfig(AlgoConfig):
     ``group``: the same within each group of ``group_size`` episodes started from one initial
     state (outcomes then compare actions, not how hard the initial state was).
     Default ``global``: measured better than ``none`` and ``task`` (docs/experiments.md)."""
-    episode_weighting: bool = True
-    """Beyond the paper: every episode carries the same total weight, however many policy calls
-    it made (failures run to the step cap and would otherwise dominate the batch: a failing
-    pick-place episode stores ~4x the samples of a successful door-open one). Default on:
-    measured 0.75 vs 0.65 average success over 3 seeds (docs/experiments.md)."""
     drop_uniform_tasks: bool = False
     """Beyond the paper: give weight 0 to the samples of a task whose episodes in this iteration
     all succeeded or all failed (no contrast to learn from, only exploration noise; GRPO's

@@ -78,6 +78,14 @@ def variant_config(name: str, base: AlgoConfig) -> AlgoConfig:
     return cls(**{**values, **variant.overrides, "name": variant.algo})
 
 
+def reward_signal(cfg: AlgoConfig) -> str:
+    """What ``cfg`` learns from, for the comparison table: ``success`` (the sparse outcome) or
+    ``success + shaped`` (the simulator's shaped reward too: π-StepNFT's ``labels: progress``,
+    PPO's and GRPO's ``reward: shaped``)."""
+    shaped = getattr(cfg, "labels", None) == "progress" or getattr(cfg, "reward", None) == "shaped"
+    return "success + shaped" if shaped else "success"
+
+
 def describe_variants(indent: str = "  ") -> str:
     """One line per variant: its name, algorithm and what it is."""
     width = max(map(len, VARIANTS))

@@ -8,6 +8,7 @@ import csv
 import io
 import json
 import math
+import subprocess
 from pathlib import Path
 
 from stepnft.compare.command import CompareCommand, command_line
@@ -34,20 +35,20 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
 def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, status: dict) -> str:
     """The table of every row, the paired differences per task, the runs that crashed."""
     columns, ref, rows = summary["columns"], summary["reference"], summary["rows"]
-    lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "",
+    lines = [f"# Comparison: {', '.join(cmd.algos)}", "", f"    {command_line(cmd)}", "", f"Code: {code_version()}.", "",
              f"RL budget {settings['env_step_budget']:,} env steps per run; seeds {', '.join(map(str, cmd.seeds))}; "
              f"ODE evaluation on {settings['eval']['episodes']} fixed initial states per task. Success: mean over "
              "seeds [95 % t-interval over seeds]. Δ: paired difference to "
              f"`{ref}` from the same SFT policy per seed, on average over every (seed, task) pair [95 % t-interval].",
-             "", "| algorithm | runs | " + " | ".join(columns) + f" | Δ vs {ref} | env steps | wall-clock (min) | "
-             "learner samples/s |", "|---" * (len(columns) + 6) + "|"]
+             "", "| algorithm | runs | " + " | ".join(columns) + f" | Δ vs {ref} | env steps | optimizer steps / "
+             "iteration | reward signal | wall-clock (min) | learner samples/s |", "|---" * (len(columns) + 8) + "|"]
     for name, row in rows.items():
         runs = f"{row['finished']}/{row['runs']}" + (f" ({len(row['crashed'])} crashed)" if row["crashed"] else "")
         label = "SFT (start)" if name == SFT else name
         delta = format_ci(row["diff"]["average"], signed=True) if row["paired_seeds"] else "–"
-        extra = "– | – | –" if name == SFT else (
-            f"{row['env_steps']:,.0f} | {row['wall_clock_s'] / 60:.1f} | {row['samples_per_s']:,.0f}"
-            if row["finished"] else "– | – | –")
+        extra = "– | – | – | – | –" if name == SFT or not row["finished"] else (
+            f"{row['env_steps']:,.0f} | {_number(row['update_steps'], '.1f')} | {row['reward'] or '–'} | "
+            f"{_number(row['wall_clock_s'] / 60, '.1f')} | {_number(row['samples_per_s'], ',.0f')}")
         lines.append(f"| {label} | {runs} | " + " | ".join(format_ci(row["success"][c]) for c in columns)
                      + f" | {delta} | {extra} |")
     others = [n for n in rows if n not in (SFT, ref) and rows[n]["paired_seeds"]]
@@ -60,28 +61,50 @@ def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, stat
     if missing:
         lines += ["", "Runs that crashed (rerun the same command to retry them):", ""]
         lines += [f"- `{n}`: exit code {s.get('rc')}, log `{s.get('log')}`" for n, s in missing]
-    lines += ["", "Learner samples/s: recorded denoising transitions per second of update time. Wall-clock: the "
-              "run's own time (runs shared the machine with the other jobs).", "",
+    lines += ["", "Optimizer steps / iteration: the mean of the runs' `losses/update_steps`. Reward signal: what the "
+              "algorithm learns from (`success`: the sparse outcome; `success + shaped`: the simulator's shaped "
+              "reward too). Learner samples/s: recorded denoising transitions per second of update time. "
+              "Wall-clock: the run's own time (runs shared the machine with the other jobs).", "",
               "![success against env steps](comparison.png)", ""]
     return "\n".join(lines)
 
 
+def _number(x: float, spec: str) -> str:
+    return "–" if math.isnan(x) else format(x, spec)
+
+
+def code_version() -> str:
+    """The commit of the working directory when the report is written, and whether ``stepnft/``
+    differed from it (a rerun writes the report again: runs resumed then use that code)."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        commit, changed = git("rev-parse", "--short=12", "HEAD"), git("status", "--porcelain", "--", "stepnft")
+    except (OSError, subprocess.CalledProcessError):
+        return "not a git checkout"
+    return f"commit {commit}" + (" with uncommitted changes in stepnft/" if changed else "")
+
+
 def comparison_csv(summary: dict) -> str:
     """One line per row and column (task or average): success and paired difference with their
-    intervals, run counts, means of env steps, wall-clock and learner speed."""
+    intervals, run counts, means of env steps, wall-clock, learner speed and optimizer steps per
+    iteration, the reward signal."""
     ref, rows = summary["reference"], summary["rows"]
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["algorithm", "task", "runs", "finished", "crashed", "success_mean", "success_ci_lo",
                      "success_ci_hi", f"diff_vs_{ref}_mean", "diff_ci_lo", "diff_ci_hi", "paired_seeds",
-                     "env_steps_mean", "wall_clock_s_mean", "learner_samples_per_s"])
+                     "env_steps_mean", "wall_clock_s_mean", "learner_samples_per_s", "update_steps_per_iteration",
+                     "reward_signal"])
     for name, row in rows.items():
         for c in summary["columns"]:
             diff = row["diff"][c] if row["paired_seeds"] else (math.nan,) * 3
             numbers = [*row["success"][c], *diff, row["paired_seeds"], row["env_steps"], row["wall_clock_s"],
-                       row["samples_per_s"]]
+                       row["samples_per_s"], row["update_steps"]]
             writer.writerow([name, c, row["runs"], row["finished"], len(row["crashed"]),
-                             *("" if isinstance(x, float) and math.isnan(x) else round(x, 4) for x in numbers)])
+                             *("" if isinstance(x, float) and math.isnan(x) else round(x, 4) for x in numbers),
+                             row["reward"] or ""])
     return buffer.getvalue()
 
 

@@ -10,8 +10,10 @@ import math
 import statistics
 from pathlib import Path
 
+from stepnft.algos.variants import reward_signal
 from stepnft.compare.command import CompareCommand
 from stepnft.compare.plan import SFT
+from stepnft.config import load_config
 from stepnft.runs import read_metrics
 from stepnft.suites import SUITE_NAMES, summarize_suites
 
@@ -44,13 +46,16 @@ def paired_differences(values: dict[int, float | None], reference: dict[int, flo
 
 def load_result(run_dir: Path) -> dict | None:
     """A finished run's after-RL success per task (and ``average``), env steps, evaluation curve
-    ``[(env_steps, success)]`` and learner samples/s; None if it did not finish."""
+    ``[(env_steps, success)]``, learner samples/s, optimizer steps per iteration (the mean of
+    ``losses/update_steps``) and the reward signal its config learns from (None without a
+    ``config.yaml``); None if it did not finish."""
     if not (run_dir / "summary.json").is_file():
         return None
     summary = json.loads((run_dir / "summary.json").read_text())
     records = read_metrics(run_dir / "metrics.jsonl")
     update_s = sum(r.get("time/update_s") or 0.0 for r in records)
     samples = sum(r.get("charts/samples") or 0 for r in records)
+    config = run_dir / "config.yaml"
     return {"success": {t: v["after"]["success"] for t, v in summary["tasks"].items()} | {
                 "average": summary["average"]["after"]},
             "env_steps": summary["env_steps"],
@@ -59,7 +64,9 @@ def load_result(run_dir: Path) -> dict | None:
                       for r in records if not r.get("final") and
                       r.get("charts/validation_success_rate", r.get("charts/success_rate")) is not None]
                      + [(summary["env_steps"], summary["average"]["after"])],
-            "samples_per_s": samples / update_s if update_s > 0 else math.nan}
+            "samples_per_s": samples / update_s if update_s > 0 else math.nan,
+            "update_steps": _mean([r.get("losses/update_steps") for r in records if not r.get("final")]),
+            "reward": reward_signal(load_config(config).algo) if config.is_file() else None}
 
 
 def load_sft(run_dir: Path) -> dict | None:
@@ -73,7 +80,8 @@ def load_sft(run_dir: Path) -> dict | None:
 
 def summarise(cmd: CompareCommand, out: Path, status: dict) -> dict:
     """Per row (SFT, then each variant): per-seed results, success and paired-difference
-    statistics per task and on average, run counts, means of env steps, wall-clock and speed."""
+    statistics per task and on average, run counts, means of env steps, wall-clock, speed and
+    optimizer steps per iteration, the reward signal."""
     tasks = json.loads((out / "compare.json").read_text())["env"]["tasks"]
     columns = [*tasks, "average"]
     reference = cmd.reference if cmd.reference in cmd.algos else cmd.algos[0]
@@ -99,6 +107,8 @@ def summarise(cmd: CompareCommand, out: Path, status: dict) -> dict:
             "wall_clock_s": _mean([status.get(n, {}).get("wall_clock_s") for n, s in zip(names, cmd.seeds)
                                    if s in done]),
             "samples_per_s": _mean([r.get("samples_per_s") for r in done.values()]),
+            "update_steps": _mean([r.get("update_steps") for r in done.values()]),
+            "reward": ", ".join(sorted({r["reward"] for r in done.values() if r.get("reward")})) or None,
             "curves": {s: r.get("curve") for s, r in done.items()},
         }
     return {"tasks": tasks, "columns": columns, "reference": reference, "rows": rows}

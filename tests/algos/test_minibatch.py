@@ -19,6 +19,18 @@ def test_minibatches_are_the_randperm_of_each_pass_split():
     assert all(torch.equal(a, b) for a, b in zip(got, expected))
 
 
+def test_minibatches_of_samples_holding_several_steps_hold_minibatch_size_steps():
+    """PPO's and GRPO's samples are policy calls of K recorded steps: minibatch_size // K of them
+    (at least one), from the same random order."""
+    cfg = StepNFTConfig(update_epochs=2, minibatch_size=8)
+    epochs = MinibatchEpochs(cfg, NonFiniteGuard(cfg))
+    got = list(epochs.minibatches(10, torch.Generator().manual_seed(7), steps_per_sample=4))
+    g = torch.Generator().manual_seed(7)
+    expected = [idx for _ in range(2) for idx in torch.randperm(10, generator=g).split(2)]
+    assert [len(i) for i in got] == [2] * 10 and all(torch.equal(a, b) for a, b in zip(got, expected))
+    assert [len(i) for i in epochs.minibatches(3, None, steps_per_sample=16)] == [1, 1, 1] * 2
+
+
 def test_a_stop_ends_every_pass_and_draws_no_later_order():
     cfg = StepNFTConfig(update_epochs=5, minibatch_size=5)
     gen = torch.Generator().manual_seed(0)

@@ -1,13 +1,17 @@
 """PPO and GRPO with Flow-SDE on hand-built batches: GAE, group normalisation, the likelihood of
-a call (``stepnft.algos.likelihood``), the direction of an update, checkpoints, config checks."""
+a call (``stepnft.algos.likelihood``), the direction of an update, checkpoints, config checks; the
+setup they share with π-StepNFT (minibatches of recorded steps, episode weighting), the shaped
+reward and the critic's loss."""
 
 import pytest
 import torch
 
 from stepnft.algos.base import make_algorithm
-from stepnft.algos.grpo import GRPOConfig, group_advantages
-from stepnft.algos.likelihood import call_step_rows, policy_gradient_update, steps_log_prob
-from stepnft.algos.ppo import PPOConfig, gae, success_rewards
+from stepnft.algos.grpo import GRPOConfig, episode_scores, group_advantages
+from stepnft.algos.likelihood import (call_rewards, call_step_rows, call_weights, policy_gradient_update,
+                                      shaped_rewards, steps_log_prob, success_rewards)
+from stepnft.algos.ppo import PPOConfig, gae, value_loss
+from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.batch import Batch
 from stepnft.checkpoint import flatten_state, unflatten_state
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
@@ -113,7 +117,9 @@ def test_an_update_raises_the_likelihood_of_positive_advantages():
     metrics = policy_gradient_update(policy, torch.optim.Adam(policy.parameters(), lr=3e-4), batch, advantages, cfg)
     change = log_probs() - before
     assert change[batch.episode_success].mean() > 0 > change[~batch.episode_success].mean()
-    assert metrics["losses/update_steps"] == 8 and metrics["losses/approx_kl"] > 0
+    # 256 calls of 4 recorded steps in minibatches of 64 recorded steps (16 calls), 2 epochs: as
+    # many optimizer steps as π-StepNFT takes on the same 1,024 recorded steps.
+    assert metrics["losses/update_steps"] == 2 * 1024 // 64 and metrics["losses/approx_kl"] > 0
 
 
 def test_target_kl_stops_the_updates():
@@ -167,3 +173,64 @@ def test_minibatches_without_advantage_are_skipped():
     assert metrics["losses/approx_kl"] != metrics["losses/approx_kl"]  # NaN: nothing measured
     assert all(torch.equal(a, b) for a, b in zip(moved, policy.parameters()))
     assert not all(torch.equal(a, b) for a, b in zip(before, moved))
+
+
+def test_every_algorithm_takes_the_same_optimizer_steps_on_the_same_recorded_steps():
+    """One definition of the minibatch: ``minibatch_size`` recorded steps, for π-StepNFT (a sample
+    is a recorded step) and PPO/GRPO (a sample is a call of K = 4 recorded steps)."""
+    episode = [i % 40 for i in range(300)]
+    steps = {}
+    for cfg in (StepNFTConfig(noise_level=0.3, minibatch_size=128, update_epochs=2),
+                PPOConfig(noise_level=0.3, minibatch_size=128, update_epochs=2),
+                GRPOConfig(noise_level=0.3, minibatch_size=128, update_epochs=2, group_size=2)):
+        policy, batch = make_batch(sorted(episode), success=[i % 3 == 0 for i in range(40)],
+                                   seed=[i // 2 for i in range(40)], record_all=True)
+        algo = make_algorithm(cfg, policy, iterations=1, generator=torch.Generator().manual_seed(0))
+        steps[cfg.name] = algo.update(batch)["losses/update_steps"]
+    assert steps == {"stepnft": 2 * 10, "ppo": 2 * 10, "grpo": 2 * 10}  # 1,200 recorded steps: 10 minibatches
+
+
+@pytest.mark.parametrize("weighting, expected", [(False, -0.5), (True, 0.0)])
+def test_episode_weighting_gives_every_episode_the_same_weight(weighting, expected):
+    """Episode 0 (6 calls, advantage +1) against episode 1 (2 calls, -1): at ratio 1 the surrogate
+    is ``-mean(w A)``: -0.5 by calls, 0 with every episode weighing the same."""
+    policy, batch = make_batch([0, 0, 1, 0, 0, 1, 0, 0], success=[True, False])
+    advantages = torch.where(batch.episode == 0, 1.0, -1.0)
+    cfg = PPOConfig(noise_level=0.3, update_epochs=1, minibatch_size=64, episode_weighting=weighting)
+    metrics = policy_gradient_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, advantages, cfg)
+    assert metrics["losses/policy_loss"] == pytest.approx(expected, abs=1e-6)
+    weights = call_weights(batch, cfg)
+    assert (weights is None) == (not weighting)
+    if weighting:
+        torch.testing.assert_close(weights, torch.tensor([2 / 3, 2 / 3, 2, 2 / 3, 2 / 3, 2, 2 / 3, 2 / 3]))
+
+
+def test_shaped_rewards_are_potential_based_shaping_of_the_call_levels():
+    # Episode 0 (calls 0, 2, 4; succeeds): levels 1, 3, 2 (reward per executed step, 2 steps a
+    # call); episode 1 (calls 1, 3; fails): levels 5, 4. r_c = success_c + γ L_c - L_{c-1}, L_{-1} = L_0.
+    _, batch = make_batch([0, 1, 0, 1, 0], success=[True, False])
+    batch.reward = torch.tensor([2.0, 10.0, 6.0, 8.0, 4.0])
+    torch.testing.assert_close(shaped_rewards(batch, gamma=0.5), torch.tensor([-0.5, -2.5, 0.5, -3.0, -1.0]))
+    assert call_rewards(batch, PPOConfig()).tolist() == success_rewards(batch).tolist() == [0, 0, 0, 0, 1]
+    # Undiscounted, an episode's sum telescopes: success + last level - first level (GRPO's score).
+    torch.testing.assert_close(shaped_rewards(batch, gamma=1.0), torch.tensor([0.0, 0.0, 2.0, -1.0, 0.0]))
+    grpo = GRPOConfig(reward="shaped")
+    torch.testing.assert_close(episode_scores(batch, grpo), torch.tensor([1 + 2 - 1.0, 4 - 5.0]))
+    assert episode_scores(batch, GRPOConfig()).tolist() == [1.0, 0.0]
+
+
+def test_value_loss_squared_huber_and_clipped():
+    value, old, returns = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.5, 0.9]), torch.tensor([3.0, 0.2, 1.0])
+    squared = 0.5 * (value - returns) ** 2  # 4.5, 0.02, 0
+    assert value_loss(value, old, returns, PPOConfig()).item() == pytest.approx(squared.mean().item())
+    # Huber δ = 1: the first error (3) is linear, 1 * (3 - 0.5).
+    huber = value_loss(value, old, returns, PPOConfig(huber_delta=1.0))
+    assert huber.item() == pytest.approx((2.5 + 0.02 + 0.0) / 3)
+    # Value clip 0.2 (RLinf's): the larger of the clipped and unclipped errors. The first prediction
+    # moved 1.0 from its rollout value 0, clipped to 0.2 (error 2.8 > 2); the second moved -0.5,
+    # clipped to 0.3 (error 0.1 < 0.2: the unclipped one counts); the third is within 0.2.
+    moved = torch.tensor([1.0, 0.0, 1.0])
+    clipped = value_loss(moved, old, returns, PPOConfig(value_clip=0.2))
+    assert clipped.item() == pytest.approx((0.5 * 2.8**2 + 0.02 + 0.0) / 3)
+    weighted = value_loss(value, old, returns, PPOConfig(), weights=torch.tensor([0.0, 3.0, 0.0]))
+    assert weighted.item() == pytest.approx(0.02)
