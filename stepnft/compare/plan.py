@@ -49,7 +49,9 @@ def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     except ValueError as err:
         raise ValueError(f"{err} (--tasks, --env-steps and --eval-episodes set env.tasks, env_step_budget and "
                          "eval.episodes)") from None
-    check_task_episodes(cfg.demos, get_simulator(cfg.env.name))
+    sim = get_simulator(cfg.env.name)
+    sim.validate_tasks(cfg.env.tasks)
+    check_task_episodes(cfg.demos, sim)
     if cfg.env_step_budget is None:
         raise ValueError("a comparison needs one env-step budget: pass --env-steps N (or set env_step_budget in --config)")
     if cfg.eval.episodes < 1:
