@@ -106,6 +106,20 @@ def read_success(folder: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
+def update_stats(work: Path, trial: str, form: str, seed: int) -> str:
+    """Mean approx-KL, clip fraction and optimizer steps per iteration of one run (its metrics.jsonl)."""
+    path = work / f"{trial}-{form.split('-')[0]}" / "runs" / form / f"seed{seed}" / "metrics.jsonl"
+    if not path.exists():
+        return "–"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def mean(key: str) -> float:
+        values = [r[key] for r in rows if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
+        return statistics.fmean(values) if values else math.nan
+
+    return f"{mean('losses/approx_kl'):.3g} / {mean('losses/clipfrac'):.2f} / {mean('losses/update_steps'):.1f}"
+
+
 def paired(a: dict[str, float], b: dict[str, float]) -> tuple[float, float, float]:
     """Mean of ``a - b`` over tasks with a 95 % t-interval (the same test states per task)."""
     diffs = [a[t] - b[t] for t in a if t in b]
@@ -139,7 +153,10 @@ def table(args: argparse.Namespace, out: Path) -> dict:
         "`default` trial (same test states; 95 % t-interval over the five tasks). One seed and a short "
         "budget: a screen for settings that are clearly better or worse, not a ranking within noise.",
         "",
-        "| form | SFT | " + " | ".join(f"{t} `{TRIALS[t]}`" if TRIALS[t] else t for t in TRIALS) + " | best |",
+        "Trials (`algo` fields changed from the base config): " + "; ".join(
+            f"`{t}` {', '.join(f'{k}={v}' for k, v in TRIALS[t].items()) or 'none'}" for t in TRIALS) + ".",
+        "",
+        "| form | SFT | " + " | ".join(TRIALS) + " | best |",
         "|---|---|" + "---|" * len(TRIALS) + "---|",
     ]
     sft = results.get("sft", {})
@@ -162,6 +179,12 @@ def table(args: argparse.Namespace, out: Path) -> dict:
         best[form] = max(trials, key=lambda t: statistics.fmean(trials[t].values()))
         start = f"{statistics.fmean(sft.values()):.2f}" if sft else "–"
         lines.append(f"| {form} | {start} | " + " | ".join(cells) + f" | {best[form]} |")
+    lines += ["", "How far each update moved (mean over the run's iterations): approx-KL / clip fraction / "
+              "optimizer steps per iteration.", "",
+              "| form | " + " | ".join(TRIALS) + " |", "|---|" + "---|" * len(TRIALS)]
+    for form in FORMS:
+        if form in results:
+            lines.append(f"| {form} | " + " | ".join(update_stats(Path(args.work), t, form, args.seed) for t in TRIALS) + " |")
     text = "\n".join(lines) + "\n"
     (out / "tuning.md").write_text(text)
     (out / "tuning.json").write_text(json.dumps({"trials": TRIALS, "success": results, "best": best,
