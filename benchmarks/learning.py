@@ -64,11 +64,23 @@ def with_fields(cfg: TrainConfig, items: list[str]) -> TrainConfig:
             node = node.get(section) if isinstance(node, dict) else None
         if not sep or not isinstance(node, dict):
             _fail(f"--set {item}: expected [SECTION.]FIELD=VALUE with an existing section, e.g. algo.labels=progress")
-        node[leaf] = yaml.safe_load(value)
+        node[leaf] = _yaml_value(value)
     try:
         return from_dict(TrainConfig, data)
     except ValueError as err:
         _fail(f"--set: {err}")
+
+
+def _yaml_value(text: str):
+    """A ``--set`` value as YAML reads it, except that ``3e-5`` is the number (YAML 1.1, which
+    PyYAML follows, wants ``3.0e-5``)."""
+    value = yaml.safe_load(text)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            pass
+    return value
 
 
 def _fail(message: str) -> None:
