@@ -5,8 +5,9 @@ A folder's commit is the ``commit`` its JSON files record (benchmarks write it),
 that last added or changed the folder in git (the results were made on the code before it).
 A folder is *stale* when ``stepnft/`` or ``configs/`` changed after that commit: its figures may
 no longer be what the code gives (a change that keeps every number, e.g. a refactor checked
-bit for bit, still counts: the docs then say why the figures stand). Exit code 0; with
-``--fail`` 1 when any folder is stale.
+bit for bit, still counts unless it is listed in ``benchmarks/results/neutral_commits.txt``:
+one commit per line, then how it was shown to change no figure, e.g. a run's metrics and weights
+compared bit for bit before and after). Exit code 0; with ``--fail`` 1 when any folder is stale.
 
     python scripts/stale_results.py            # every folder, stale ones first
     python scripts/stale_results.py --fail     # for CI-style checks
@@ -22,6 +23,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPENDS_ON = ("stepnft", "configs")
+NEUTRAL = Path("benchmarks/results/neutral_commits.txt")
 
 
 def git(root: Path, *args: str) -> str:
@@ -49,16 +51,24 @@ def folder_commit(root: Path, folder: Path) -> tuple[str | None, bool]:
     return git(root, "log", "-1", "--format=%h", "--", str(folder.relative_to(root))) or None, False
 
 
+def neutral_commits(root: Path) -> list[str]:
+    """The commits listed as changing no figure (first word of each line; ``#`` comments)."""
+    path = root / NEUTRAL
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return [line.split()[0] for line in lines if line.strip() and not line.lstrip().startswith("#")]
+
+
 def changes_since(root: Path, commit: str, recorded: bool) -> list[str]:
     """Commits that changed the code the results depend on since they were made: after a
     recorded commit, or since the parent of the commit that committed them (its own code
-    changes count: the results were made before it)."""
+    changes count: the results were made before it); those listed as neutral do not count."""
     if not git(root, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}"):
         return ["(unknown commit)"]
     base = commit if recorded else f"{commit}~1"
-    if not recorded and not git(root, "rev-parse", "--verify", "--quiet", base):  # the first commit: all counts
-        return git(root, "log", "--format=%h %ad %s", "--date=short", "HEAD", "--", *DEPENDS_ON).splitlines()
-    return git(root, "log", "--format=%h %ad %s", "--date=short", f"{base}..HEAD", "--", *DEPENDS_ON).splitlines()
+    span = ["HEAD"] if not recorded and not git(root, "rev-parse", "--verify", "--quiet", base) else [f"{base}..HEAD"]
+    log = git(root, "log", "--format=%H %h %ad %s", "--date=short", *span, "--", *DEPENDS_ON).splitlines()
+    neutral = neutral_commits(root)
+    return [line.split(" ", 1)[1] for line in log if not any(line.startswith(n) for n in neutral)]
 
 
 def main(argv=None) -> int:

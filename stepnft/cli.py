@@ -274,8 +274,7 @@ def cmd_eval(argv: list[str]) -> int:
     from stepnft.envs import get_simulator
     from stepnft.envs.base import RenderingError
     from stepnft.policies.base import load_policy
-    from stepnft.runs import write_atomic
-    from stepnft.runs import check_folder
+    from stepnft.runs import check_folder, write_atomic
     from stepnft.suites import (check_suites, evaluate_suite, evaluate_suites, format_suite, format_suites,
                                 record_suite_videos)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -295,6 +296,23 @@ def save_config(cfg, path: str | Path) -> None:
     write_atomic(path, yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
+class _Loader(yaml.SafeLoader):
+    """YAML as PyYAML's safe loader reads it, but with YAML 1.2's numbers: ``3e-5`` is a float
+    (YAML 1.1 wants ``3.0e-5`` and reads ``3e-5`` as a string, which a float setting refuses)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def read_yaml(text: str):
+    """Parse YAML ``text`` as config files are read (``3e-5`` is a number)."""
+    return yaml.load(text, Loader=_Loader)
+
+
 def load_config(path: str | Path, cls=TrainConfig):
     """Read a YAML config; raise ValueError with one actionable line when it is bad."""
     path = Path(path)
@@ -303,7 +321,7 @@ def load_config(path: str | Path, cls=TrainConfig):
     if not path.is_file():
         raise ValueError(f"config file {path} not found")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = read_yaml(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise ValueError(f"config file {path} is not valid YAML: {str(err).splitlines()[0]}") from err
     try:

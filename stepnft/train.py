@@ -266,7 +266,8 @@ def _finish(run: TrainingRun, logger: MetricLogger, sim, log) -> dict:
     }
     write_atomic(run_dir / "summary.json", json.dumps(summary, indent=2))
     log("before -> after (policy/):\n" + format_table(before, after))
-    log(f"best_policy/ (iteration {best['iteration']}, validation {best['validation']}): "
+    validation = "none" if best["validation"] is None else f"{best['validation']:.3f}"
+    log(f"best_policy/ (iteration {best['iteration']}, validation {validation}): "
         f"test average {best_after['average']:.3f}")
     log("time: " + ", ".join(f"{phase} {seconds:.0f} s" for phase, seconds in progress.time_s.items()))
     for name, below in (("policy/", summary["below_start"]), ("best_policy/", summary["best_below_start"])):

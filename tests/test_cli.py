@@ -186,6 +186,13 @@ def test_a_yaml_config_is_read_and_flags_override_it(tmp_path):
     assert not resume and cfg.iterations == 7 and cfg.env.tasks == ["reach-v3", "push-v3"] and cfg.algo.lr == 0.002
 
 
+def test_a_yaml_config_reads_exponents_as_numbers(tmp_path):
+    config = tmp_path / "config.yaml"  # YAML 1.1 (PyYAML's) reads 3e-5 as a string; a user writes it
+    config.write_text("algo:\n  lr: 3e-5\n  critic_lr: 1E-3\n  name: ppo\nenv:\n  tasks: [reach-v3]\n")
+    cfg, _ = _config_from_argv(["--config", str(config)], "stepnft train", True)
+    assert cfg.algo.lr == 3e-5 and cfg.algo.critic_lr == 1e-3 and cfg.env.tasks == ["reach-v3"]
+
+
 def test_missing_or_corrupt_policy_for_eval(capsys, workspace, tmp_path):
     line = assert_one_line_error(*run_cli(capsys, "eval", "--policy", tmp_path / "nowhere")[::2], "eval")
     assert "no policy checkpoint at" in line

@@ -171,6 +171,34 @@ def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor
     return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
 
 
+# --- what every algorithm may read from a batch ------------------------------------------------
+def episode_weights(episode: Tensor) -> Tensor:
+    """``[B]`` weights giving every episode the same total weight (mean 1 over the batch)."""
+    _, inverse, counts = episode.unique(return_inverse=True, return_counts=True)
+    w = 1.0 / counts[inverse].float()
+    return w * len(w) / w.sum()
+
+
+def call_progress(batch: Batch, lam: float) -> Tensor:
+    """``[C]`` how much each policy call raised the shaped reward: the λ-averaged reward level
+    from this call on, ``G_c = (1 - λ) r_c + λ G_{c+1}`` (``r`` the mean reward per executed env
+    step; after the episode's last call its level holds), minus the level of the call before
+    (the first call: its own). With a reward that is a function of the state (a potential, as
+    MetaWorld's shaping is), this is the call's effect on where the episode is heading."""
+    level = (batch.reward / batch.mask.sum(dim=1).clamp(min=1)).tolist()
+    episode = batch.episode.tolist()
+    progress = [0.0] * len(level)
+    ahead: dict[int, float] = {}  # episode -> G of its next call
+    for c in reversed(range(len(level))):  # the calls of an episode are in row order
+        ahead[episode[c]] = (1 - lam) * level[c] + lam * ahead.get(episode[c], level[c])
+        progress[c] = ahead[episode[c]]
+    before: dict[int, float] = {}
+    for c in range(len(level)):
+        progress[c] -= before.get(episode[c], level[c])
+        before[episode[c]] = level[c]
+    return torch.tensor(progress, dtype=torch.float32)
+
+
 class MinibatchEpochs:
     """The minibatch loop of every algorithm's update: ``cfg.update_epochs`` passes over the
     samples, each in a fresh random order, in minibatches of ``cfg.minibatch_size`` recorded steps. It sums the

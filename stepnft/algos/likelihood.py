@@ -14,8 +14,7 @@ from typing import Annotated, Callable, Literal
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, MinibatchEpochs, NonFiniteGuard, step_velocity
-from stepnft.algos.stepnft import call_progress, episode_weights
+from stepnft.algos.base import AlgoConfig, MinibatchEpochs, NonFiniteGuard, call_progress, episode_weights, step_velocity
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward

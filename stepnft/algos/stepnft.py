@@ -13,7 +13,8 @@ from typing import Annotated, Any, Literal
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, step_velocity
+from stepnft.algos.base import (AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, call_progress,
+                                episode_weights, step_velocity)
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
@@ -113,13 +114,6 @@ def label_weights(y: Tensor, group: Tensor | None = None, base: Tensor | None = 
     return w
 
 
-def episode_weights(episode: Tensor) -> Tensor:
-    """``[B]`` weights giving every episode the same total weight (mean 1 over the batch)."""
-    _, inverse, counts = episode.unique(return_inverse=True, return_counts=True)
-    w = 1.0 / counts[inverse].float()
-    return w * len(w) / w.sum()
-
-
 def informative_mask(y: Tensor, group: Tensor) -> Tensor:
     """``[B]`` bool: True for samples whose group holds both successes and failures."""
     keep = torch.zeros_like(y, dtype=torch.bool)
@@ -135,26 +129,6 @@ def episode_groups(batch: Batch) -> Tensor:
     """``[E]`` group id of every episode: episodes of one task from one initial state share it."""
     keys = torch.stack([batch.episode_task, batch.episode_seed], dim=1)
     return keys.unique(dim=0, return_inverse=True)[1]
-
-
-def call_progress(batch: Batch, lam: float) -> Tensor:
-    """``[C]`` how much each policy call raised the shaped reward: the λ-averaged reward level
-    from this call on, ``G_c = (1 - λ) r_c + λ G_{c+1}`` (``r`` the mean reward per executed env
-    step; after the episode's last call its level holds), minus the level of the call before
-    (the first call: its own). With a reward that is a function of the state (a potential, as
-    MetaWorld's shaping is), this is the call's effect on where the episode is heading."""
-    level = (batch.reward / batch.mask.sum(dim=1).clamp(min=1)).tolist()
-    episode = batch.episode.tolist()
-    progress = [0.0] * len(level)
-    ahead: dict[int, float] = {}  # episode -> G of its next call
-    for c in reversed(range(len(level))):  # the calls of an episode are in row order
-        ahead[episode[c]] = (1 - lam) * level[c] + lam * ahead.get(episode[c], level[c])
-        progress[c] = ahead[episode[c]]
-    before: dict[int, float] = {}
-    for c in range(len(level)):
-        progress[c] -= before.get(episode[c], level[c])
-        before[episode[c]] = level[c]
-    return torch.tensor(progress, dtype=torch.float32)
 
 
 def step_labels(batch: Batch, cfg: StepNFTConfig) -> Tensor:

@@ -8,13 +8,13 @@ import csv
 import io
 import json
 import math
-import subprocess
 from pathlib import Path
 
 from stepnft.compare.command import CompareCommand, command_line
 from stepnft.compare.plan import SFT
 from stepnft.compare.stats import summarise, summarise_suites
 from stepnft.evaluate import format_ci
+from stepnft.provenance import code_commit
 from stepnft.runs import write_atomic
 from stepnft.suites import SUITE_NAMES
 
@@ -74,16 +74,12 @@ def _number(x: float, spec: str) -> str:
 
 
 def code_version() -> str:
-    """The commit of the working directory when the report is written, and whether ``stepnft/``
+    """The commit of the package's checkout when the report is written, and whether ``stepnft/``
     differed from it (a rerun writes the report again: runs resumed then use that code)."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], capture_output=True, text=True, check=True).stdout.strip()
-
-    try:
-        commit, changed = git("rev-parse", "--short=12", "HEAD"), git("status", "--porcelain", "--", "stepnft")
-    except (OSError, subprocess.CalledProcessError):
+    commit = code_commit()
+    if commit is None:
         return "not a git checkout"
-    return f"commit {commit}" + (" with uncommitted changes in stepnft/" if changed else "")
+    return f"commit {commit.split('+')[0]}" + (" with uncommitted changes in stepnft/" if "+" in commit else "")
 
 
 def comparison_csv(summary: dict) -> str:

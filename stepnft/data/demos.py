@@ -49,6 +49,7 @@ from tqdm import tqdm
 
 from stepnft.envs import get_simulator
 from stepnft.envs.episodes import DemoEpisode
+from stepnft.provenance import changed_since, code_commit, code_version
 from stepnft.runs import check_folder, write_atomic
 
 __all__ = ["DemoEpisode", "check_task_episodes", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos",
@@ -177,7 +178,7 @@ def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, i
                  "episodes_per_task": settings["episodes_per_task"], "max_attempts": settings["max_attempts"],
                  "discarded": discarded, "seed": settings["seed"], "action_noise": settings["action_noise"],
                  "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
-                 "simulator_version": package_version,
+                 "simulator_version": package_version, "code": code_version(),
                  **{k: settings[k] for k in ("cameras", "image_size") if k in settings}}
     return {"format": FORMAT, "version": VERSION, "tasks": tasks, "episodes": entries, "generator": generator}
 
@@ -281,6 +282,8 @@ def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], N
                        max_episode_steps=env_cfg.max_episode_steps, simulator=simulator,
                        max_attempts=demos_cfg.max_attempts, successful_only=demos_cfg.successful_only,
                        cameras=cameras, image_size=image_size)
+    elif has_manifest:
+        _say_if_recorded_by_other_code(path, log)
     if cameras and not own_dataset and demo_cameras(path) != (cameras, image_size):
         recorded, size = demo_cameras(path)
         raise ValueError(f"demonstrations in {path} were recorded with cameras {recorded} at {size} px, the env "
@@ -294,6 +297,25 @@ def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], N
                          f"of {short}: point --demos.path at a new folder (the run generates enough there), or delete "
                          f"this one (`rm -r {path}`)")
     return [e for kept in per_task.values() for e in kept]
+
+
+RECORDER = ("stepnft/envs", "stepnft/data/demos.py")
+"""The code a demonstration depends on: the simulators' experts and envs, and the recorder."""
+
+
+def _say_if_recorded_by_other_code(path: Path, log: Callable[[str], None]) -> None:
+    """One line when the demonstrations in ``path`` were recorded by code whose experts, envs or
+    recorder differ from the code running now (or by code of unknown version): the same seed may
+    then give other demonstrations, and another SFT start, on a fresh checkout."""
+    recorded = json.loads((path / "manifest.json").read_text()).get("generator", {}).get("code", {}).get("commit")
+    changed = changed_since(recorded, RECORDER)
+    if changed is None and code_commit() is not None:
+        log(f"reusing demonstrations in {path} recorded by code of {'unknown version' if not recorded else recorded}: "
+            f"delete the folder to record them with this code")
+    elif changed:
+        log(f"reusing demonstrations in {path} recorded at commit {recorded}; the recorder or experts have changed "
+            f"since ({', '.join(changed[:3])}{', ...' if len(changed) > 3 else ''}): delete the folder to record "
+            f"them with this code")
 
 
 def check_task_episodes(demos_cfg, simulator) -> None:

@@ -99,6 +99,24 @@ def _error_reply(index: int, exc: BaseException) -> tuple:
     return ("error", (index, message, remote_tb, payload))
 
 
+_BEAT: dict[str, Any] = {"conn": None, "last": 0.0}
+"""In a worker process while it runs a ``run`` function: its pipe to the parent and when it
+last reported progress."""
+
+
+def heartbeat() -> None:
+    """Say "still making progress" to the parent, from a function running in a worker
+    (``ShardedVectorEnv.run``), e.g. after each env step: the parent then gives the worker
+    ``timeout`` seconds from its latest beat rather than from the start of the command, so a long
+    run on a loaded machine is not taken for a hung worker, and a stuck one still is. At most four
+    messages a second; does nothing outside a running ``run`` function."""
+    conn = _BEAT["conn"]
+    now = time.monotonic()
+    if conn is not None and now - _BEAT["last"] >= 0.25:
+        _BEAT["last"] = now
+        conn.send(("alive", None))
+
+
 def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: Connection,
             parent_conn: Connection | None) -> None:
     """Owns sub-envs ``indices`` (built by `env_fns`, in that order); answers one reply per
@@ -120,10 +138,13 @@ def _worker(indices: Sequence[int], env_fns: list[Callable[[], gym.Env]], conn: 
                 conn.send(("ok", None))
                 break
             current = [indices[0]]  # the sub-env being worked on, for error reports
+            _BEAT.update(conn=conn if command == "run" else None, last=time.monotonic())
             try:
                 reply = ("ok", _answer(envs, indices, command, data, current))
             except Exception as exc:  # noqa: BLE001 - sent back to the parent
                 reply = _error_reply(current[0], exc)
+            finally:
+                _BEAT["conn"] = None
             try:
                 conn.send(reply)
             except Exception as exc:  # noqa: BLE001 - e.g. an attribute that cannot be pickled
@@ -550,24 +571,31 @@ class ShardedVectorEnv(gym.vector.VectorEnv):
     def _gather(self, what: str, workers: Sequence[int] | None = None) -> list[Any]:
         """The reply payload of each of ``workers`` (default: all), in that order; raises the
         error of the lowest sub-env that failed."""
-        deadline = time.monotonic() + self.timeout
         workers = list(range(self.num_workers)) if workers is None else list(workers)
+        # A worker has `timeout` seconds from the command, or from its latest heartbeat().
+        deadline = dict.fromkeys(workers, time.monotonic() + self.timeout)
         pending = {w: self._workers.conns[w] for w in workers}
         replies: dict[int, tuple] = {}
         while pending:
-            remaining = deadline - time.monotonic()
+            remaining = min(deadline[w] for w in pending) - time.monotonic()
             sentinels = {self._workers.processes[w].sentinel: w for w in pending}
             ready = wait(list(pending.values()) + list(sentinels), timeout=max(0.0, remaining))
             if not ready:
-                waiting = ", ".join(str(w) for w in pending)
-                self._fail(f"ShardedVectorEnv worker(s) {waiting} did not answer {what} within "
-                           f"{self.timeout:g} s (timeout); the env was closed")
+                late = [w for w in pending if deadline[w] <= time.monotonic()]
+                if not late:
+                    continue
+                self._fail(f"ShardedVectorEnv worker(s) {', '.join(map(str, late))} did not answer {what} "
+                           f"within {self.timeout:g} s (timeout); the env was closed")
             for w, conn in list(pending.items()):
                 if conn in ready or (self._workers.processes[w].sentinel in ready and conn.poll()):
                     try:
-                        replies[w] = conn.recv()
+                        reply = conn.recv()
                     except (EOFError, OSError, ConnectionResetError):
                         self._fail(self._died(w, what))
+                    if reply[0] == "alive":
+                        deadline[w] = time.monotonic() + self.timeout
+                        continue
+                    replies[w] = reply
                     del pending[w]
                 elif self._workers.processes[w].sentinel in ready:
                     self._fail(self._died(w, what))

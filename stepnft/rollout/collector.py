@@ -40,6 +40,7 @@ from torch import Tensor
 from stepnft.batch import CALL_KEYS, EPISODE_KEYS, STEP_KEYS, Batch
 from stepnft.devices import to_device
 from stepnft.envs.base import run_ops
+from stepnft.envs.sharded import heartbeat
 from stepnft.policies.base import Policy
 from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
@@ -153,6 +154,7 @@ class _LaneEnvs:
 
     def send_ops(self, ops) -> None:
         self._replies.append(run_ops(self.envs, ops))
+        heartbeat()  # the parent waits for a lane as long as it makes progress
 
     def receive_ops(self) -> list:
         return self._replies.popleft()

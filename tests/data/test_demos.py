@@ -2,12 +2,14 @@ import ast
 import dataclasses
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+import stepnft
 from stepnft.config import DemoConfig, EnvConfig
 from stepnft.data.demos import (
     DEMO_SEED_OFFSET,
@@ -20,6 +22,7 @@ from stepnft.data.demos import (
 )
 from stepnft.envs import get_simulator
 from stepnft.envs.metaworld import MetaWorldChunkEnv, instruction_for
+from stepnft.provenance import changed_since, code_commit, code_version
 
 
 @pytest.fixture(scope="module")
@@ -273,7 +276,8 @@ def test_an_expert_that_edits_its_observation_does_not_change_the_recorded_state
         np.testing.assert_array_equal(episode.observations, np.stack([obs["state"]] * len(episode.observations)))
 
 
-def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path):
+def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path, monkeypatch):
+    monkeypatch.setattr("stepnft.data.demos.changed_since", lambda commit, paths: [])  # the same code reads them
     sim, lines = get_simulator("bandit"), []
     env = EnvConfig(name="bandit", tasks=["bandit"], max_episode_steps=2)
     demos = DemoConfig(path=str(tmp_path / "demos"), episodes=3, successful_only=False, seed=4)
@@ -288,6 +292,39 @@ def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path):
     assert len(load_or_generate_demos(more, env, sim, lines.append)) == 4
     with pytest.raises(ValueError, match="too few successful episodes"):  # the expert misses most of them
         load_or_generate_demos(dataclasses.replace(demos, successful_only=True), env, sim, lines.append)
+
+
+def test_demonstrations_record_the_code_and_reuse_by_other_code_says_so(tmp_path, monkeypatch):
+    sim, lines = get_simulator("bandit"), []
+    env = EnvConfig(name="bandit", tasks=["bandit"], max_episode_steps=2)
+    demos = DemoConfig(path=str(tmp_path / "demos"), episodes=2, successful_only=False)
+    load_or_generate_demos(demos, env, sim, lines.append)
+    code = json.loads((tmp_path / "demos" / "manifest.json").read_text())["generator"]["code"]
+    assert code == code_version() and code["stepnft"] == stepnft.__version__
+    monkeypatch.setattr("stepnft.data.demos.code_commit", lambda: "abc")  # read in a git checkout
+    changes = {"none": [], "expert": ["stepnft/envs/metaworld.py"], "unknown": None}
+    for case, changed in changes.items():
+        monkeypatch.setattr("stepnft.data.demos.changed_since", lambda commit, paths, changed=changed: changed)
+        lines.clear()
+        assert len(load_or_generate_demos(demos, env, sim, lines.append)) == 2
+        if case == "none":
+            assert lines == []
+        else:
+            assert len(lines) == 1 and lines[0].startswith(f"reusing demonstrations in {tmp_path / 'demos'} recorded")
+            assert ("stepnft/envs/metaworld.py" in lines[0]) == (case == "expert")
+            assert lines[0].endswith("delete the folder to record them with this code")
+
+
+def test_code_commit_is_this_checkouts():
+    commit = code_commit()
+    if commit is None:  # an installed package
+        return
+    head = subprocess.run(["git", "-C", str(Path(stepnft.__file__).parents[1]), "rev-parse", "--short=12", "HEAD"],
+                          capture_output=True, text=True).stdout.strip()
+    assert commit.split("+")[0] == head
+    assert changed_since(None, ("stepnft",)) is None and changed_since(commit + "+uncommitted", ("stepnft",)) is None
+    assert changed_since("0" * 40, ("stepnft",)) is None  # a commit this checkout does not have
+    assert changed_since(head, ("no-such-folder",)) == []
 
 
 def test_demonstrations_without_the_envs_cameras_are_refused(reach_demos):

@@ -13,7 +13,7 @@ try:
     from stepnft.envs.metaworld import MetaWorldChunkEnv
 except ImportError:  # the env module's newer home
     from stepnft.envs.metaworld.env import MetaWorldChunkEnv
-from stepnft.envs.sharded import ShardedVectorEnv, shard_ranges
+from stepnft.envs.sharded import ShardedVectorEnv, heartbeat, shard_ranges
 
 N_EXEC = 4
 TASKS = ["reach-v3", "push-v3"]
@@ -272,6 +272,26 @@ def test_unresponsive_worker_times_out():
     with pytest.raises(RuntimeError, match="did not answer step within 1 s"):
         venv.step(np.zeros(2, np.int64))
     assert time.monotonic() - start < 5
+    assert venv.closed and not multiprocessing.active_children()
+
+
+def _busy(envs, sub_envs, seconds, beat):
+    """A run function that works for ``seconds``, reporting progress if ``beat``."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        time.sleep(0.05)
+        if beat:
+            heartbeat()
+    return len(envs)
+
+
+def test_a_long_run_that_reports_progress_is_waited_for_and_a_silent_one_times_out():
+    venv = ShardedVectorEnv(env_fns()[:2], num_workers=2, timeout=1.0)
+    heartbeat()  # outside a worker: nothing happens
+    assert venv.run(_busy, [(3.0, True), (0.1, False)]) == [1, 1]  # 3 s on a 1 s timeout
+    assert venv.run(_busy, [(0.1, False), (0.1, False)]) == [1, 1]  # no beat left in the pipe
+    with pytest.raises(RuntimeError, match=r"worker\(s\) 1 did not answer run\(_busy\) within 1 s"):
+        venv.run(_busy, [(3.0, True), (3.0, False)])
     assert venv.closed and not multiprocessing.active_children()
 
 

@@ -40,3 +40,25 @@ def test_folders_older_than_the_code_are_listed_as_stale(tmp_path):
     (results / "recorded" / "r.json").write_text(json.dumps({"commit": first}))  # it says it ran on the old code
     git(tmp_path, "commit", "-qam", "edit")
     assert stale(tmp_path)["recorded"] is True
+
+
+def test_a_commit_listed_as_neutral_does_not_make_results_stale(tmp_path):
+    git(tmp_path, "init", "-q")
+    (tmp_path / "stepnft").mkdir()
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\n")
+    results = tmp_path / "benchmarks" / "results"
+    (results / "table").mkdir(parents=True)
+    (results / "table" / "t.json").write_text("{}")
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "code")
+    (results / "table" / "t.json").write_text(json.dumps({"commit": git(tmp_path, "rev-parse", "--short", "HEAD")}))
+    git(tmp_path, "commit", "-qam", "results")
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1  # renamed, same numbers\n")
+    git(tmp_path, "commit", "-qam", "a refactor")
+    assert stale(tmp_path) == {"table": True}
+    refactor = git(tmp_path, "rev-parse", "--short", "HEAD")
+    (results / "neutral_commits.txt").write_text(f"# commit  how it was checked\n{refactor}  metrics bit for bit\n")
+    assert stale(tmp_path) == {"table": False}
+    (tmp_path / "stepnft" / "core.py").write_text("x = 2\n")
+    git(tmp_path, "commit", "-qam", "the numbers change")
+    assert stale(tmp_path) == {"table": True}
