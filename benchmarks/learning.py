@@ -28,7 +28,7 @@ import yaml
 
 from provenance import command, commit
 
-from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, to_dict
+from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, read_yaml, to_dict
 from stepnft.evaluate import format_ci
 from stepnft.runs import read_metrics, save_panels, task_panels
 from stepnft.train import train
@@ -64,23 +64,11 @@ def with_fields(cfg: TrainConfig, items: list[str]) -> TrainConfig:
             node = node.get(section) if isinstance(node, dict) else None
         if not sep or not isinstance(node, dict):
             _fail(f"--set {item}: expected [SECTION.]FIELD=VALUE with an existing section, e.g. algo.labels=progress")
-        node[leaf] = _yaml_value(value)
+        node[leaf] = read_yaml(value)
     try:
         return from_dict(TrainConfig, data)
     except ValueError as err:
         _fail(f"--set: {err}")
-
-
-def _yaml_value(text: str):
-    """A ``--set`` value as YAML reads it, except that ``3e-5`` is the number (YAML 1.1, which
-    PyYAML follows, wants ``3.0e-5``)."""
-    value = yaml.safe_load(text)
-    if isinstance(value, str):
-        try:
-            return float(value)
-        except ValueError:
-            pass
-    return value
 
 
 def _fail(message: str) -> None:
