@@ -144,11 +144,16 @@ def table(args: argparse.Namespace, out: Path) -> dict:
     lines = [
         "# Baseline tuning: four likelihood forms, one grid of trials",
         "",
-        f"    {command()}",
+        f"    MUJOCO_GL=egl .venv/bin/python benchmarks/tune_baselines.py --seed {args.seed} --env-steps "
+        f"{args.env_steps} --eval-episodes {args.eval_episodes} --out {args.out}",
+        "",
+        "(the trials ran in parts, each part this command with `--trials` naming its trials; rerunning it "
+        f"resumes and tables. This table: `{command()}`.)",
         "",
         f"Commit {commit()}. Seed {args.seed} (one SFT policy, the same for every run), "
         f"{args.env_steps:,} RL env steps per run, {args.eval_episodes} test episodes per task; base configs "
-        f"{', '.join(BASES.values())}; each trial changes the `algo` fields named in its column. Cells: "
+        f"{', '.join(BASES.values())} as they were when the trial ran (each trial's exact config is in "
+        f"`{args.out}/configs`); each trial changes the `algo` fields named in its column. Cells: "
         "average test success over the five tasks, and in brackets its paired difference to the form's "
         "`default` trial (same test states; 95 % t-interval over the five tasks). One seed and a short "
         "budget: a screen for settings that are clearly better or worse, not a ranking within noise.",
