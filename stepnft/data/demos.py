@@ -307,7 +307,13 @@ def _say_if_recorded_by_other_code(path: Path, log: Callable[[str], None]) -> No
     """One line when the demonstrations in ``path`` were recorded by code whose experts, envs or
     recorder differ from the code running now (or by code of unknown version): the same seed may
     then give other demonstrations, and another SFT start, on a fresh checkout."""
-    recorded = json.loads((path / "manifest.json").read_text()).get("generator", {}).get("code", {}).get("commit")
+    try:
+        manifest = json.loads((path / "manifest.json").read_text())
+    except (OSError, ValueError):  # a corrupt manifest is load_demos's to report, with its hint
+        return
+    generator = manifest.get("generator") if isinstance(manifest, dict) else None
+    code = generator.get("code") if isinstance(generator, dict) else None
+    recorded = code.get("commit") if isinstance(code, dict) else None
     changed = changed_since(recorded, RECORDER)
     if changed is None and code_commit() is not None:
         log(f"reusing demonstrations in {path} recorded by code of {'unknown version' if not recorded else recorded}: "

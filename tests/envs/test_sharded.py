@@ -286,7 +286,8 @@ def _busy(envs, sub_envs, seconds, beat):
 
 
 def test_a_long_run_that_reports_progress_is_waited_for_and_a_silent_one_times_out():
-    venv = ShardedVectorEnv(env_fns()[:2], num_workers=2, timeout=1.0)
+    venv = ShardedVectorEnv(env_fns()[:2], num_workers=2, timeout=60)
+    venv.timeout = 1.0  # after the envs are built (slow on a loaded machine)
     heartbeat()  # outside a worker: nothing happens
     assert venv.run(_busy, [(3.0, True), (0.1, False)]) == [1, 1]  # 3 s on a 1 s timeout
     assert venv.run(_busy, [(0.1, False), (0.1, False)]) == [1, 1]  # no beat left in the pipe
