@@ -49,6 +49,7 @@ def stepnft_loss(
     form: str = "rank",
     actions: Tensor | None = None,
     weight: Tensor | None = None,
+    mean_correction: bool = True,
 ) -> tuple[Tensor, dict[str, float]]:
     """The π-StepNFT step-wise contrastive ranking loss (docs/algorithm.md §4). One function on
     purpose: the body reads as the equations of §4 top to bottom (its length is the signature
@@ -67,15 +68,19 @@ def stepnft_loss(
         mask: ``[B, H]`` bool, True on executed chunk positions; None means all.
         target: ``"next"`` (step-wise, the paper) or ``"x0"`` (ablation: compare
             ``x0_± = x_t - t v_±`` with ``actions``, the executed chunk, same normaliser).
-        form: ``"rank"`` (the paper) or ``"wmse"`` (DiffusionNFT-style ablation
-            ``r E_pos + (1 - r) E_neg``, ``r = (y + 1) / 2``).
+        form: ``"rank"`` (the paper), ``"wmse"`` (DiffusionNFT-style ablation
+            ``r E_pos + (1 - r) E_neg``, ``r = (y + 1) / 2``), or one branch of it alone:
+            ``"pos"`` (``r E_pos``: pull toward successful steps) or ``"neg"``
+            (``(1 - r) E_neg``: push away from failed ones).
         actions: the executed chunk ``[B, H, A]``; required when ``target="x0"``.
         weight: optional per-sample weights ``[B]`` (e.g. label balancing); None = uniform.
+        mean_correction: the step coefficients the rollout sampled with (False: the plain
+            Euler mean, the exploration ablation of ``sde_step_coeffs``).
     """
     if target not in ("next", "x0"):
         raise ValueError(f"target must be 'next' or 'x0', got {target!r}")
-    if form not in ("rank", "wmse"):
-        raise ValueError(f"form must be 'rank' or 'wmse', got {form!r}")
+    if form not in ("rank", "wmse", "pos", "neg"):
+        raise ValueError(f"form must be 'rank', 'wmse', 'pos' or 'neg', got {form!r}")
     if mask is None:
         mask = torch.ones(v.shape[:2], dtype=torch.bool, device=v.device)
 
@@ -88,7 +93,7 @@ def stepnft_loss(
     delta_c = delta * scale
     v_pos, v_neg = v_old + beta * delta_c, v_old - beta * delta_c
 
-    u, b, std = sde_step_coeffs(t, dt, noise_level)
+    u, b, std = sde_step_coeffs(t, dt, noise_level, mean_correction)
     var = std.detach().pow(2) + 1e-4  # [B, 1, 1]
     if target == "next":
         obs = x_next
@@ -103,11 +108,15 @@ def stepnft_loss(
     e_neg = ((obs - pred_neg).pow(2) / var).sum(dim=-1)
 
     y_col = y.to(v.dtype).reshape(-1, 1)
+    r = 0.5 * (y_col + 1.0)
     if form == "rank":
         per_position = F.softplus(0.5 * beta_dpo * y_col * (e_pos - e_neg))
-    else:
-        r = 0.5 * (y_col + 1.0)
+    elif form == "wmse":
         per_position = r * e_pos + (1.0 - r) * e_neg
+    elif form == "pos":
+        per_position = r * e_pos
+    else:
+        per_position = (1.0 - r) * e_neg
     main = _masked_mean(per_position, mask, weight)
     kl = _masked_mean(delta.pow(2).mean(dim=-1), mask, weight)
     loss = main + kl_beta * kl

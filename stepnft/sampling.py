@@ -23,28 +23,36 @@ def _col(x: Tensor) -> Tensor:
     return x.reshape(-1, 1, 1)
 
 
-def sde_step_coeffs(t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, Tensor, Tensor]:
+def sde_step_coeffs(t: Tensor, dt: Tensor, noise_level: float,
+                    mean_correction: bool = True) -> tuple[Tensor, Tensor, Tensor]:
     """Coefficients of one Flow-SDE step: ``mean = u * x_t + b * v``, ``x_next ~ N(mean, std^2)``.
 
     ``t``, ``dt``: ``[B]``. Returns ``u``, ``b``, ``std``, each ``[B, 1, 1]``.
     ``sigma_t = a * sqrt(t / (1 - t))``; at ``t = 1`` the denominator is ``dt`` (docs/algorithm.md §2).
+    ``mean_correction=False`` is the paper's exploration ablation: the same noise added to the
+    plain Euler step (``u = 1``, ``b = -dt``), without the drift terms that keep the marginals
+    of the flow; the chunks then leave the distribution the policy was trained on.
     """
     t, dt = _col(t), _col(dt)
     one_minus_t = torch.where(t >= 1.0 - 1e-6, dt, 1.0 - t)
     sigma_sq = noise_level**2 * t / one_minus_t
+    std = torch.sqrt(sigma_sq * dt)
+    if not mean_correction:
+        return torch.ones_like(t), -dt, std
     u = 1.0 - sigma_sq * dt / (2.0 * t)
     b = -dt * (1.0 + sigma_sq * (1.0 - t) / (2.0 * t))
-    std = torch.sqrt(sigma_sq * dt)
     return u, b, std
 
 
-def sde_step_mean_std(x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level: float) -> tuple[Tensor, Tensor]:
+def sde_step_mean_std(x_t: Tensor, v: Tensor, t: Tensor, dt: Tensor, noise_level: float,
+                      mean_correction: bool = True) -> tuple[Tensor, Tensor]:
     """Mean and std of the Flow-SDE step ``x_t -> x_{t-dt}`` (docs/algorithm.md §2).
 
     ``x_t``, ``v``: ``[B, H, A]``; ``t``, ``dt``: ``[B]``. ``std`` is ``[B, 1, 1]``.
-    ``noise_level = 0`` gives the Euler ODE step ``x_t - dt * v`` with ``std = 0``.
+    ``noise_level = 0`` gives the Euler ODE step ``x_t - dt * v`` with ``std = 0``;
+    ``mean_correction=False`` the Euler mean with the same ``std`` (an ablation, :func:`sde_step_coeffs`).
     """
-    u, b, std = sde_step_coeffs(t, dt, noise_level)
+    u, b, std = sde_step_coeffs(t, dt, noise_level, mean_correction)
     return u * x_t + b * v, std
 
 
@@ -154,6 +162,7 @@ def sample_chunk(
     stochastic_steps: str = "all",
     device: torch.device | str = "cpu",
     keep_path: bool = False,
+    mean_correction: bool = True,
 ) -> ChunkSample:
     """Denoise pure noise into an action chunk ``[B, H, A]`` in ``num_steps`` steps.
 
@@ -162,7 +171,8 @@ def sample_chunk(
     ``stochastic_steps``: ``"all"`` makes every step stochastic (π-StepNFT), ``"one"`` only
     the recorded step, the rest ODE (πRL's PPO/GRPO likelihood). ``keep_path`` also
     returns every intermediate chunk and velocity (``path_x``, ``path_v``). ``generator`` may
-    be one per row of the batch.
+    be one per row of the batch. ``mean_correction=False``: the stochastic steps add their noise
+    to the plain Euler mean (the exploration ablation of :func:`sde_step_coeffs`).
     """
     if stochastic_steps not in ("all", "one"):
         raise ValueError(f"stochastic_steps must be 'all' or 'one', got {stochastic_steps!r}")
@@ -174,7 +184,7 @@ def sample_chunk(
     for k in range(num_steps):
         t = torch.full((batch,), 1.0 - k / num_steps, device=device)
         v = velocity_fn(x, t)
-        mean, std = sde_step_mean_std(x, v, t, dt, noise_level)
+        mean, std = sde_step_mean_std(x, v, t, dt, noise_level, mean_correction)
         if stochastic_steps == "one":  # the other steps are plain Euler steps
             here = _col(step == k)
             ode_mean, _ = sde_step_mean_std(x, v, t, dt, 0.0)

@@ -78,7 +78,7 @@ def test_help_lists_every_command_and_config_section(capsys):
     assert code == 0
     assert all(f"--{s}." in out for s in CONFIG_SECTIONS)
     assert "--config" in out and "--resume" in out
-    assert "{next,x0}" in out and "{rank,wmse}" in out  # choice fields list their choices
+    assert "{next,x0}" in out and "{rank,wmse,pos,neg}" in out  # choice fields list their choices
     assert "--algo.name" in out and "stepnft" in out
     for command in ("sft", "eval", "demos", "demo-bandit"):
         assert run_cli(capsys, command, "--help")[0] == 0

@@ -20,8 +20,8 @@ class GoalSeeker(FlowPolicy):
     """A random flow policy steered toward the reach goal: whether an episode succeeds depends
     on its initial state and on the sampler's noise."""
 
-    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
-        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False, **kwargs):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path, **kwargs)
         state = obs["state"]
         out.actions[..., :3] += 10.0 * (state[:, None, GOAL] - state[:, None, HAND])
         return out

@@ -159,3 +159,31 @@ def test_clipped_policy_loss_clips_the_ratio_on_the_side_the_advantage_pushes():
     loss.backward()
     # Clipped samples get no gradient; the others -A r / 4.
     torch.testing.assert_close(log_prob.grad, torch.tensor([0.0, 1.5 / 4, 0.0, -2.0 / 4]))
+
+
+def test_branch_forms_are_the_two_halves_of_wmse():
+    d = make_batch(drift=0.3)
+    d["y"] = torch.tensor([1.0, -1.0, 0.5, -0.2, 1.0, -1.0])  # progress labels lie in [-1, 1]
+    args = (d["v"], d["v_old"], d["x_t"], d["x_next"], d["t"], d["dt"], 0.2, d["y"])
+    e_pos, e_neg, *_ = per_position_terms(d)
+    r = 0.5 * (d["y"][:, None] + 1)
+    pos, _ = stepnft_loss(*args, form="pos", kl_beta=0.0)
+    neg, _ = stepnft_loss(*args, form="neg", kl_beta=0.0)
+    wmse, _ = stepnft_loss(*args, form="wmse", kl_beta=0.0)
+    assert pos.item() == pytest.approx((r * e_pos).mean().item(), rel=1e-5)
+    assert neg.item() == pytest.approx(((1 - r) * e_neg).mean().item(), rel=1e-5)
+    assert (pos + neg).item() == pytest.approx(wmse.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="'pos' or 'neg'"):
+        stepnft_loss(*args, form="both")
+
+
+def test_without_mean_correction_the_candidates_are_euler_means():
+    d = make_batch(drift=0.3)
+    args = (d["v"], d["v_old"], d["x_t"], d["x_next"], d["t"], d["dt"], 0.2, d["y"])
+    _, met = stepnft_loss(*args, mean_correction=False, max_drift=None)
+    col = d["dt"].view(-1, 1, 1)
+    _, _, std = sde_step_coeffs(d["t"], d["dt"], 0.2)
+    var = std**2 + 1e-4
+    e_pos = ((d["x_next"] - (d["x_t"] - col * d["v"])) ** 2 / var).sum(-1)  # v_+ = v_old + Δ = v (β = 1)
+    assert met["E_pos"] == pytest.approx(e_pos.mean().item(), rel=1e-5)
+    assert met["E_pos"] != pytest.approx(energies(d, max_drift=None)["E_pos"], rel=1e-3)

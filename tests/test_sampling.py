@@ -183,3 +183,27 @@ def test_sde_step_log_prob_is_highest_at_the_mean_and_its_gradient_moves_the_mea
     sde_step_log_prob(x_next, x_t, v, t, dt, 0.4).sum().backward()
     new_mean, _ = sde_step_mean_std(x_t, v.detach() + 1e-3 * v.grad, t, dt, 0.4)
     assert (x_next - new_mean).norm() < (x_next - mean).norm()
+
+
+@pytest.mark.parametrize("t", [1.0, 0.5, 0.25])
+def test_without_mean_correction_the_noise_is_added_to_the_euler_step(t):
+    x_t, v = torch.randn(4, 2, 3), torch.randn(4, 2, 3)
+    tt, dt = torch.full((4,), t), torch.full((4,), 0.25)
+    mean, std = sde_step_mean_std(x_t, v, tt, dt, 0.5, mean_correction=False)
+    corrected, corrected_std = sde_step_mean_std(x_t, v, tt, dt, 0.5)
+    torch.testing.assert_close(mean, x_t - 0.25 * v)
+    torch.testing.assert_close(std, corrected_std)  # same noise, only the drift differs
+    assert not torch.allclose(mean, corrected)
+
+
+def test_sample_chunk_without_mean_correction_draws_around_the_euler_mean():
+    velocity = lambda x, t: 0.3 * x + 1.0  # noqa: E731
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    plain = sample_chunk(velocity, (64, 2, 3), noise_level=0.5, generator=g1, keep_path=True, mean_correction=False)
+    corrected = sample_chunk(velocity, (64, 2, 3), noise_level=0.5, generator=g2, keep_path=True)
+    steps = plain.all_steps()
+    mean, std = sde_step_mean_std(steps["x_t"], steps["v_old"], steps["t"], steps["dt"], 0.5, mean_correction=False)
+    z = (steps["x_next"] - mean) / std
+    assert abs(z.mean().item()) < 0.1 and z.std().item() == pytest.approx(1.0, abs=0.1)
+    torch.testing.assert_close(plain.path_x[:, 0], corrected.path_x[:, 0])  # the same start
+    assert not torch.allclose(plain.actions, corrected.actions)

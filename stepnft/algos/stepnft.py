@@ -44,8 +44,14 @@ class StepNFTConfig(AlgoConfig):
     """Weight of ``mean((v - v_old)^2)``."""
     target: Literal["next", "x0"] = "next"
     """``next``: step-wise target ``x_{t-dt}`` (paper); ``x0``: final-action ablation."""
-    form: Literal["rank", "wmse"] = "rank"
-    """``rank``: contrastive ranking (paper); ``wmse``: DiffusionNFT weighted-MSE ablation."""
+    form: Literal["rank", "wmse", "pos", "neg"] = "rank"
+    """``rank``: contrastive ranking (paper); ``wmse``: DiffusionNFT weighted-MSE ablation;
+    ``pos`` / ``neg``: one branch of it alone (``r E_pos``: pull toward the steps of successes;
+    ``(1 - r) E_neg``: push away from those of failures), the paper's branch ablations."""
+    mean_correction: bool = True
+    """Flow-SDE rollouts with the drift correction that keeps the flow's marginals (paper).
+    False: the exploration ablation "SDE without mean correction": the same noise added to the
+    plain Euler step, and the loss's step mean taken the same way."""
     ema_base: Annotated[float, Range(ge=0, le=1)] = 0.1
     """EMA decay at iteration 0."""
     ema_target: Annotated[float, Range(ge=0, le=1)] = 0.995
@@ -93,7 +99,8 @@ class StepNFTConfig(AlgoConfig):
             raise self.fail("{label_balance}=group needs {group_size} >= 2", self.group_size)
 
     def rollout_spec(self) -> RolloutSpec:
-        return RolloutSpec(self.noise_level, self.sde_steps, self.record_steps, self.group_size)
+        return RolloutSpec(self.noise_level, self.sde_steps, self.record_steps, self.group_size,
+                           self.mean_correction)
 
 
 # --- sample weights ---------------------------------------------------------------------------
@@ -194,7 +201,7 @@ def stepnft_update(
         loss, metrics = stepnft_loss(
             v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta, beta_dpo=cfg.beta_dpo,
             max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask, target=cfg.target, form=cfg.form,
-            actions=actions, weight=w,
+            actions=actions, weight=w, mean_correction=cfg.mean_correction,
         )
         if math.isfinite(metrics["loss"]):
             epochs.measure(metrics)

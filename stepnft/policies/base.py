@@ -155,7 +155,7 @@ class Policy(nn.Module, ABC):
 
     @torch.no_grad()
     def sample(self, obs: dict[str, Tensor], noise_level: float = 0.0, generator: torch.Generator | None = None,
-               stochastic_steps: str = "all", keep_path: bool = False) -> ChunkSample:
+               stochastic_steps: str = "all", keep_path: bool = False, mean_correction: bool = True) -> ChunkSample:
         """Sample chunks ``[B, H, A]`` for processed ``obs`` (on the policy's device): ODE when
         ``noise_level = 0`` (evaluation), else Flow-SDE; the context is encoded once. The noise
         is drawn from the CPU ``generator`` and moved, whatever the device."""
@@ -164,7 +164,7 @@ class Policy(nn.Module, ABC):
         return sample_chunk(lambda x, t: self.denoise(context, x, t), (batch, *self.chunk_shape),
                             num_steps=self.config.num_inference_steps, noise_level=noise_level, generator=generator,
                             stochastic_steps=stochastic_steps, device=self.device,
-                            keep_path=keep_path)
+                            keep_path=keep_path, mean_correction=mean_correction)
 
     # --- save / load ---------------------------------------------------------------------------
     def save_pretrained(self, directory: str | Path) -> Path:

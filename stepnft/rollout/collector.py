@@ -263,7 +263,8 @@ class _Play:
         sample = to_device(policy.sample(policy.prepare(obs), noise_level=self.noise_level,
                                          generator=[self.generators[r] for r in rows],
                                          stochastic_steps=record.stochastic_steps if record else "all",
-                                         keep_path=keep_path), "cpu")
+                                         keep_path=keep_path,
+                                         mean_correction=record.mean_correction if record else True), "cpu")
         chunk = policy.env_actions(sample.actions[:, :policy.config.n_exec]).clamp(-1.0, 1.0).numpy()
         lane.call_rows = list(range(len(self.call_episode), len(self.call_episode) + len(acting)))
         if record is not None:

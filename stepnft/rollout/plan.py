@@ -27,6 +27,9 @@ class RolloutSpec:
     """Store one random denoising step per policy call, or all K of them."""
     group_size: int = 1
     """Episodes per group started from the same task and initial state (GRPO); 1: no groups."""
+    mean_correction: bool = True
+    """Flow-SDE steps with the drift correction that keeps the flow's marginals (False: the
+    noise added to the plain Euler step, π-StepNFT's exploration ablation)."""
 
 
 TRAINING_SEEDS = (2**24, 2**31)

@@ -21,6 +21,12 @@ def test_stepnft_variants_keep_the_base_and_change_only_their_switch():
     assert variant_config("ode", BASE) == dataclasses.replace(BASE, noise_level=0.0)
     assert variant_config("beta-2", BASE).beta == 2.0
     assert variant_config("ema-off", BASE).ema_target == 0.0
+    assert variant_config("beta-5", BASE).beta == 5.0
+    assert variant_config("pos-only", BASE) == dataclasses.replace(BASE, form="pos")
+    assert variant_config("neg-only", BASE) == dataclasses.replace(BASE, form="neg")
+    plain = variant_config("sde-plain", BASE)
+    assert plain == dataclasses.replace(BASE, mean_correction=False)
+    assert plain.rollout_spec().mean_correction is False and BASE.rollout_spec().mean_correction is True
 
 
 def test_baselines_keep_the_shared_settings_only():

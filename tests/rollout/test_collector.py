@@ -26,8 +26,8 @@ class SeekIfGoalBeyond(FlowPolicy):
 
     threshold = 0.0
 
-    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
-        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False, **kwargs):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path, **kwargs)
         state = obs["state"]
         seek = (state[:, GOAL_X] > self.threshold)[:, None, None]
         out.actions = torch.zeros_like(out.actions)
@@ -38,8 +38,8 @@ class SeekIfGoalBeyond(FlowPolicy):
 class GoalSeeker(FlowPolicy):
     """A random flow policy pulled toward the reach goal: outcomes depend on state and noise."""
 
-    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
-        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False, **kwargs):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path, **kwargs)
         out.actions[..., :3] += 10.0 * (obs["state"][:, None, GOAL] - obs["state"][:, None, HAND])
         return out
 
@@ -122,6 +122,27 @@ def test_record_all_steps_stores_k_transitions_per_call_and_each_observation_onc
         torch.testing.assert_close(every.x_next[rows][-1], every.actions[call])
         assert every.t[rows].tolist() == [1.0, 0.75, 0.5, 0.25]
     venv.close()
+
+
+def test_the_spec_says_whether_rollout_steps_are_mean_corrected():
+    """Without the mean correction each recorded step is N(x_t - dt v_old, std^2): the collector
+    passes the spec's choice to the sampler (the exploration ablation's rollouts)."""
+    from stepnft.sampling import sde_step_mean_std
+    venv = make_metaworld_vec_env(["reach-v3"], 2, n_exec=4, max_episode_steps=40)
+    policy = small_policy(horizon=4, n_exec=4)
+    plan = EpisodePlan(task=[0, 0], seed=[0, 1], noise_seed=[0, 1])
+    collector = Collector(venv)
+    noise = {}
+    for corrected in (True, False):
+        batch = collector.play(policy, plan, 0.5, record=RolloutSpec(0.5, record_steps="all", mean_correction=corrected))
+        mean, std = sde_step_mean_std(batch.x_t, batch.v_old, batch.t, batch.dt, 0.5, mean_correction=corrected)
+        noise[corrected] = (batch.x_next - mean) / std  # the draws, recovered under the spec's own step
+    venv.close()
+    # The first step of the first call starts from the same x_1 and draws the same noise either
+    # way: only the mean differs (were the spec ignored, the plain run's recovered draw would be off
+    # by the correction term).
+    torch.testing.assert_close(noise[True][0], noise[False][0])
+    assert noise[False].pow(2).mean().item() == pytest.approx(1.0, abs=0.15)
 
 
 def test_a_sub_env_starts_its_next_episode_as_soon_as_one_ends():

@@ -40,8 +40,8 @@ class GoalSeeker(FlowPolicy):
     """A random flow policy steered toward the reach goal: successes depend on the initial
     state and the sampler's noise (so comparing outcomes means something)."""
 
-    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False):
-        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path)
+    def sample(self, obs, noise_level=0.0, generator=None, stochastic_steps="all", keep_path=False, **kwargs):
+        out = super().sample(obs, noise_level, generator, stochastic_steps, keep_path, **kwargs)
         out.actions[..., :3] += 10.0 * (obs["state"][:, None, GOAL] - obs["state"][:, None, HAND])
         return out
 
