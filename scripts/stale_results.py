@@ -7,7 +7,10 @@ A folder is *stale* when ``stepnft/`` or ``configs/`` changed after that commit:
 no longer be what the code gives (a change that keeps every number, e.g. a refactor checked
 bit for bit, still counts unless it is listed in ``benchmarks/results/neutral_commits.txt``:
 one commit per line, then how it was shown to change no figure, e.g. a run's metrics and weights
-compared bit for bit before and after). Exit code 0; with ``--fail`` 1 when any folder is stale.
+compared bit for bit before and after). A commit that changes only files under ``configs/``
+counts for a folder only if a command the folder records (``command`` in its JSON files) names
+one of those files, or one of its commands names no ``--config`` (the default config may be one
+of them). Exit code 0; with ``--fail`` 1 when any folder is stale.
 
     python scripts/stale_results.py            # every folder, stale ones first
     python scripts/stale_results.py --fail     # for CI-style checks
@@ -43,6 +46,27 @@ def recorded_commit(folder: Path) -> str | None:
     return None
 
 
+def recorded_commands(folder: Path) -> list[str]:
+    """The ``command`` strings a benchmark wrote into the folder's JSON files."""
+    commands = []
+    for path in sorted(folder.glob("*.json")):
+        try:
+            value = json.loads(path.read_text()).get("command")
+        except (ValueError, AttributeError, OSError):
+            continue
+        if isinstance(value, str) and value:
+            commands.append(value)
+    return commands
+
+
+def reads_configs(commands: list[str], changed: list[str]) -> bool:
+    """Whether runs of ``commands`` may read one of the ``changed`` config files: each command
+    must name its ``--config`` and none may be among them (no recorded command: assume yes)."""
+    if not commands or any("--config" not in c.split() for c in commands):
+        return True
+    return any(path in c.split() for c in commands for path in changed)
+
+
 def folder_commit(root: Path, folder: Path) -> tuple[str | None, bool]:
     """``(commit, recorded)``: the recorded commit, or the one that last committed the folder."""
     recorded = recorded_commit(folder)
@@ -58,17 +82,26 @@ def neutral_commits(root: Path) -> list[str]:
     return [line.split()[0] for line in lines if line.strip() and not line.lstrip().startswith("#")]
 
 
-def changes_since(root: Path, commit: str, recorded: bool) -> list[str]:
+def changes_since(root: Path, commit: str, recorded: bool, commands: list[str] | None = None) -> list[str]:
     """Commits that changed the code the results depend on since they were made: after a
     recorded commit, or since the parent of the commit that committed them (its own code
-    changes count: the results were made before it); those listed as neutral do not count."""
+    changes count: the results were made before it); those listed as neutral do not count, nor
+    those changing only config files the folder's ``commands`` do not read."""
     if not git(root, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}"):
         return ["(unknown commit)"]
     base = commit if recorded else f"{commit}~1"
     span = ["HEAD"] if not recorded and not git(root, "rev-parse", "--verify", "--quiet", base) else [f"{base}..HEAD"]
     log = git(root, "log", "--format=%H %h %ad %s", "--date=short", *span, "--", *DEPENDS_ON).splitlines()
     neutral = neutral_commits(root)
-    return [line.split(" ", 1)[1] for line in log if not any(line.startswith(n) for n in neutral)]
+    counted = []
+    for line in log:
+        if any(line.startswith(n) for n in neutral):
+            continue
+        files = git(root, "show", "--format=", "--name-only", line.split()[0], "--", *DEPENDS_ON).splitlines()
+        if files and all(f.startswith("configs/") for f in files) and not reads_configs(commands or [], files):
+            continue
+        counted.append(line.split(" ", 1)[1])
+    return counted
 
 
 def main(argv=None) -> int:
@@ -83,7 +116,7 @@ def main(argv=None) -> int:
         if commit is None:
             rows.append((True, folder.name, "not committed", []))
             continue
-        changes = changes_since(root, commit, recorded)
+        changes = changes_since(root, commit, recorded, recorded_commands(folder))
         rows.append((bool(changes), folder.name, f"{'recorded' if recorded else 'committed in'} {commit}", changes))
     for stale, name, where, changes in sorted(rows, key=lambda r: (not r[0], r[1])):
         state = f"STALE ({len(changes)} code commits since)" if stale else "current"

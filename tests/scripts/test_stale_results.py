@@ -62,3 +62,29 @@ def test_a_commit_listed_as_neutral_does_not_make_results_stale(tmp_path):
     (tmp_path / "stepnft" / "core.py").write_text("x = 2\n")
     git(tmp_path, "commit", "-qam", "the numbers change")
     assert stale(tmp_path) == {"table": True}
+
+
+def test_a_config_file_counts_only_for_folders_whose_commands_read_it(tmp_path):
+    git(tmp_path, "init", "-q")
+    (tmp_path / "stepnft").mkdir()
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\n")
+    (tmp_path / "configs").mkdir()
+    for name in ("a.yaml", "b.yaml"):
+        (tmp_path / "configs" / name).write_text("lr: 1\n")
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "code")
+    head = git(tmp_path, "rev-parse", "--short", "HEAD")
+    results = tmp_path / "benchmarks" / "results"
+    commands = {"uses_a": "bench.py --config configs/a.yaml", "uses_b": "bench.py --config configs/b.yaml",
+                "default_config": "bench.py --seeds 0", "no_command": None}
+    for name, cmd in commands.items():
+        (results / name).mkdir(parents=True)
+        (results / name / "r.json").write_text(json.dumps({"commit": head} | ({"command": cmd} if cmd else {})))
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "results")
+    (tmp_path / "configs" / "b.yaml").write_text("lr: 2\n")
+    git(tmp_path, "commit", "-qam", "b changes")
+    assert stale(tmp_path) == {"uses_a": False, "uses_b": True, "default_config": True, "no_command": True}
+    (tmp_path / "stepnft" / "core.py").write_text("x = 2\n")
+    git(tmp_path, "commit", "-qam", "the package changes")
+    assert stale(tmp_path)["uses_a"] is True
