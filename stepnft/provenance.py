@@ -23,9 +23,9 @@ def _git(*args: str) -> str | None:
 def code_commit() -> str | None:
     """The short commit of the checkout this package is imported from, with ``+uncommitted`` when
     ``stepnft/`` differs from it; None outside a git checkout (an installed wheel)."""
-    if not (CHECKOUT / "stepnft").is_dir() or _git("rev-parse", "--show-toplevel") is None:
+    if not (CHECKOUT / "stepnft").is_dir():
         return None
-    head = _git("rev-parse", "--short=12", "HEAD")
+    head = _git("rev-parse", "--short=12", "HEAD")  # None outside a git checkout
     if not head:
         return None
     return head + ("+uncommitted" if _git("status", "--porcelain", "--", "stepnft") else "")
