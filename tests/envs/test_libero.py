@@ -72,12 +72,15 @@ def test_options_are_checked(sim):
         sim.make_env(SOUP, perturbations=["table_color"])
     with pytest.raises(ValueError, match="state_obs"):
         sim.state_dim_for("objects")
-    assert sim.state_dim_for("proprio") == sim.state_dim_for("full") == 8
+    assert sim.state_dim_for("proprio") == 8 and sim.state_dim_for("full") == 64
+    with pytest.raises(ValueError, match="--env.state-obs proprio"):  # demonstrations without simulator states
+        sim.policy_state(np.zeros((3, 8)), "full")
+    np.testing.assert_array_equal(sim.policy_state(np.arange(64.0), "proprio"), np.arange(8.0))
 
 
 def test_reset_is_a_function_of_the_seed(sim, env):
     first, _ = env.reset(seed=3)
-    assert first["state"].shape == (8,) and first["image"].shape == (1, 3, 32, 32) and first["image"].dtype == np.uint8
+    assert first["state"].shape == (64,) and first["image"].shape == (1, 3, 32, 32) and first["image"].dtype == np.uint8
     rng = np.random.default_rng(0)
     for chunk in rng.uniform(-1, 1, (5, 4, 7)):
         env.step(chunk.astype(np.float32))
@@ -126,6 +129,13 @@ def test_a_replayed_demonstration_reaches_success_from_the_task_predicate(env, d
     (demo,) = load_demos(demo_dir, get_simulator("libero"), cameras=["agentview"], image_size=16)
     assert demo.task == SOUP and demo.success and len(demo.actions) == len(states)
     assert demo.images.shape == (len(states) + 1, 1, 3, 16, 16)
+    # The full state: proprioception, then the objects' poses read from the recorded MuJoCo
+    # states (the soup can and the basket, the task's objects of interest, first).
+    assert demo.observations.shape == (len(states) + 1, 64)
+    can, basket = demo.observations[0, 8:15], demo.observations[0, 15:22]
+    assert np.linalg.norm(can[:3] - basket[:3]) > 0.05 and abs(np.linalg.norm(can[3:]) - 1) < 1e-4
+    last = demo.observations[-1, 8:15]
+    assert np.linalg.norm(last[:3] - demo.observations[-1, 15:18]) < np.linalg.norm(can[:3] - basket[:3])  # moved in
     actions = demo.actions
     pad = -len(actions) % 4
     chunks = np.concatenate([actions, np.repeat(actions[-1:], pad, 0)]).reshape(-1, 4, 7)
@@ -179,7 +189,7 @@ def test_the_collector_records_camera_observations():
     from stepnft.rollout.collector import Collector
     from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
-    cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, max_episode_steps=8,
+    cfg = EnvConfig(name="libero", tasks=[SOUP], envs_per_task=1, max_episode_steps=8, state_obs="proprio",
                     cameras=["agentview", "robot0_eye_in_hand"], image_size=16)
     collector = Collector(make_vec_env(cfg, n_exec=4, seed=0), seed=0)
     try:
@@ -209,7 +219,7 @@ def test_hdf5_loader_reads_libero_layout(tmp_path):
         for k in (1, 0):
             demo = data.create_group(f"demo_{k}")
             demo.create_dataset("actions", data=np.full((5, 7), k, np.float64))
-            demo.create_dataset("states", data=np.zeros((5, 110)))
+            demo.create_dataset("states", data=np.zeros((5, 3)))  # not this model's layout: no object poses
             demo.create_dataset("dones", data=np.array([0, 0, 0, 0, 1], np.uint8))
             obs = demo.create_group("obs")
             obs.create_dataset("ee_pos", data=np.full((5, 3), 1.0 + k))

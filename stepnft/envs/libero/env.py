@@ -5,10 +5,14 @@ OSC_POSE controller at 20 Hz) built from the task's BDDL definition; success is 
 predicate (``_check_success``), evaluated after every env step.
 
 Observations:
-    ``state``  float32 [8]: end-effector position (3), orientation as an axis-angle (3), gripper
-               finger positions (2): the proprioception of LIBERO's datasets (``ee_pos``,
-               ``ee_ori``, ``gripper_states``) and of LeRobot's LIBERO datasets; LIBERO gives no
-               object positions, so ``state_obs`` full and proprio are the same
+    ``state``  float32 [8] with ``state_obs="proprio"``: end-effector position (3), orientation as
+               an axis-angle (3), gripper finger positions (2): the proprioception of LIBERO's
+               datasets (``ee_pos``, ``ee_ori``, ``gripper_states``) and of LeRobot's LIBERO
+               datasets. With ``state_obs="full"`` (the default) float32 [64]: that, then the
+               pose of each of the task's objects (position (3), quaternion xyzw (4); the task's
+               objects of interest first, then the others in the BDDL file's order; zeros in
+               the slots of a task with fewer than 8 objects), what a state policy needs to see
+               where things are (the fixtures' joints, e.g. a drawer's, are not included)
     ``image``  uint8 [V, 3, S, S] with ``cameras`` (``agentview``, ``robot0_eye_in_hand``), S =
                ``image_size``: upright (rotated 180 degrees from robosuite's raw frame, as OpenVLA
                and LeRobot feed it), with shadows, as LIBERO's datasets were rendered
@@ -42,6 +46,11 @@ from stepnft.envs.base import RenderingError, checked_chunk
 from stepnft.envs.libero.suites import all_tasks, initial_states
 
 STATE_DIM = 8
+"""The proprioception (``state_obs="proprio"``)."""
+OBJECT_SLOTS = 8
+"""Object poses in the full state: the most objects of any LIBERO task (libero_90 has 8)."""
+FULL_STATE_DIM = STATE_DIM + 7 * OBJECT_SLOTS
+"""The proprioception and the objects' poses (``state_obs="full"``)."""
 ACTION_DIM = 7
 CONTROL_HZ = 20
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -57,6 +66,22 @@ def proprio_state(obs: dict[str, np.ndarray]) -> np.ndarray:
 
     return np.concatenate([obs["robot0_eef_pos"], quat2axisangle(obs["robot0_eef_quat"]),
                            obs["robot0_gripper_qpos"]]).astype(np.float32)
+
+
+def object_names(problem) -> list[str]:
+    """The task's objects in the full state's order: its objects of interest first, then the
+    others as the BDDL file lists them (``problem``: LIBERO's problem env)."""
+    first = [name for name in problem.obj_of_interest if name in problem.objects_dict]
+    return first + [name for name in problem.objects_dict if name not in first]
+
+
+def object_poses(obs: dict[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
+    """float32 [7 * OBJECT_SLOTS]: position and quaternion of each object of ``names`` from
+    robosuite's observation dict, zero-padded."""
+    poses = np.zeros((OBJECT_SLOTS, 7), dtype=np.float32)
+    for slot, name in enumerate(names[:OBJECT_SLOTS]):
+        poses[slot] = np.concatenate([obs[f"{name}_pos"], obs[f"{name}_quat"]])
+    return poses.reshape(-1)
 
 
 class LiberoChunkEnv(gym.Env):
@@ -83,7 +108,7 @@ class LiberoChunkEnv(gym.Env):
         if unknown:
             raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(CAMERAS)}")
         if state_obs not in ("full", "proprio"):
-            raise ValueError(f"LIBERO's state_obs is full or proprio (the same 8 values), got {state_obs!r}")
+            raise ValueError(f"LIBERO's state_obs is full (proprioception and object poses) or proprio, got {state_obs!r}")
         if perturbations:
             raise ValueError("LIBERO has no perturbation suites or training randomisation (docs/ood.md is MetaWorld's)")
         self.task = tasks[task]
@@ -97,8 +122,10 @@ class LiberoChunkEnv(gym.Env):
         self._cameras = list(cameras)
         self._image_size = image_size
         self._init_states = initial_states(task)
+        self.state_obs = state_obs
 
-        spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
+        state_dim = FULL_STATE_DIM if state_obs == "full" else STATE_DIM
+        spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)}
         if self._cameras:
             spaces["image"] = gym.spaces.Box(0, 255, (len(self._cameras), 3, image_size, image_size), np.uint8)
         self.observation_space = gym.spaces.Dict(spaces)
@@ -116,6 +143,7 @@ class LiberoChunkEnv(gym.Env):
                                camera_names=[CAMERAS[0]], camera_heights=image_size,
                                camera_widths=image_size, hard_reset=False, ignore_done=True,
                                control_freq=CONTROL_HZ)
+        self._objects = object_names(self._env.env)
         self.np_random, _ = seeding.np_random(seed)
         self._obs: dict[str, np.ndarray] | None = None
         self._episode_steps = 0
@@ -173,8 +201,20 @@ class LiberoChunkEnv(gym.Env):
         """The flattened MuJoCo state (what LIBERO's datasets store as ``states``)."""
         return self._env.get_sim_state().copy()
 
+    def full_states(self, sim_states: np.ndarray) -> np.ndarray:
+        """float32 [T, 64]: the full ``state`` observation at each flattened MuJoCo state of this
+        task (e.g. a recorded demonstration's ``states``). Leaves the env needing a reset."""
+        rows = []
+        for state in np.asarray(sim_states, dtype=np.float64):
+            raw = self._env.regenerate_obs_from_state(state)
+            rows.append(np.concatenate([proprio_state(raw), object_poses(raw, self._objects)]))
+        self._obs = None
+        return np.stack(rows).astype(np.float32)
+
     def _observe(self, raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         obs = {"state": proprio_state(raw)}
+        if self.state_obs == "full":
+            obs["state"] = np.concatenate([obs["state"], object_poses(raw, self._objects)])
         if self._cameras:
             size = self._image_size
             obs["image"] = np.stack([self._render(camera, size, size).transpose(2, 0, 1) for camera in self._cameras])
