@@ -185,8 +185,24 @@ def plot(work: Path, budget: int, path: Path) -> None:
     plt.close(fig)
 
 
+def refresh_report(args: argparse.Namespace, work: Path) -> None:
+    """Write the comparison's report (comparison.md / .csv / .png) from the runs finished so far,
+    as ``stepnft compare`` does when it ends: the table can be made while seeds still run."""
+    if not (work / "compare.json").exists():
+        return
+    from stepnft.compare import CompareCommand
+    from stepnft.compare.report import write_report
+
+    cmd = CompareCommand(config=args.config, algos=[REFERENCE, *args.variants], seeds=args.seeds,
+                         env_steps=args.env_steps, jobs=args.jobs, out=args.work, reference=REFERENCE,
+                         eval_episodes=args.eval_episodes)
+    status = json.loads((work / "status.json").read_text()) if (work / "status.json").exists() else {}
+    write_report(cmd, work, status)
+
+
 def table(args: argparse.Namespace, out: Path) -> dict:
     work = Path(args.work)
+    refresh_report(args, work)
     rows = read_rows(work)
     ref, sft = rows.get(REFERENCE), rows.get("sft")
     lines = [
