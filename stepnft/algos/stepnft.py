@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from stepnft.algos.base import (AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, call_progress,
-                                episode_weights, step_velocity)
+                                call_step_rows, episode_weights, step_velocity)
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
@@ -188,7 +188,12 @@ def stepnft_update(
     y = step_labels(batch, cfg)
     weights = sample_weights(batch, y, cfg)
     epochs = MinibatchEpochs(cfg, guard)
-    for idx in epochs.minibatches(batch.num_steps, generator):
+    if policy.shares_prefix_in_update:  # whole calls: a call's recorded steps then share one prefix encoding
+        rows = call_step_rows(batch)
+        minibatches = (rows[calls].flatten() for calls in epochs.minibatches(batch.num_calls, generator, rows.shape[1]))
+    else:  # random steps (the MLP's path, kept bit for bit)
+        minibatches = epochs.minibatches(batch.num_steps, generator)
+    for idx in minibatches:
         w = None if weights is None else weights[idx]
         if w is not None and not bool(w.sum() > 0):
             epochs.skip()  # nothing to learn here; an Adam step on zero gradients would still move
