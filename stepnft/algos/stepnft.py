@@ -18,7 +18,7 @@ from stepnft.algos.base import (AlgoConfig, Algorithm, MinibatchEpochs, NonFinit
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
-from stepnft.ema import ema_decay, ema_update, make_ema_copy
+from stepnft.ema import ema_decay, ema_state_dict, ema_update, load_ema_state_dict, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
 from stepnft.settings import Range
@@ -249,8 +249,9 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return super().state_dict() | {"ema": self.ema.state_dict()}
+        # The EMA copy's own tensors only: the frozen modules it shares are saved with the policy.
+        return super().state_dict() | {"ema": ema_state_dict(self.ema, self.policy)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        self.ema.load_state_dict(state["ema"])
+        load_ema_state_dict(self.ema, self.policy, state["ema"])

@@ -303,6 +303,41 @@ def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
 
 
 @needs_lerobot
+def test_a_checkpoint_keeps_only_the_ema_copys_own_tensors_and_resumes_it_exactly(tiny_folder, tmp_path):
+    """``train: expert``: the EMA copy shares the frozen VLM and state projection with the
+    policy, so the checkpoint stores them once (in ``policy/``); resume rebuilds the EMA copy
+    exactly; a checkpoint holding the whole EMA state (as before) resumes too."""
+    from stepnft.algos.stepnft import StepNFT, StepNFTConfig
+    from stepnft.checkpoint import load_checkpoint, save_checkpoint
+
+    policy = load(tiny_folder)
+    cfg = StepNFTConfig(lr=1e-3, minibatch_size=24, update_epochs=1)
+    algo = StepNFT(policy, cfg, iterations=4, generator=torch.Generator().manual_seed(0))
+    algo.update(rollout_batch(algo.ema))
+    algo.end_iteration(0)
+    save_checkpoint(tmp_path, 1, policy, {"algorithm": algo.state_dict()})
+    ckpt = load_checkpoint(tmp_path)
+    saved = ckpt["state"]["algorithm"]["ema"]
+    frozen = {n for n, p in policy.named_parameters() if not p.requires_grad}
+    trained = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert frozen and not (saved.keys() & frozen) and trained <= saved.keys()
+    assert not any(".vlm_with_expert.vlm." in k or "state_proj" in k for k in saved)
+    whole = algo.ema.state_dict()
+    size = sum(v.numel() * v.element_size() for v in saved.values())
+    assert size < 0.6 * sum(v.numel() * v.element_size() for v in whole.values())  # 450 M: 22 % (trained share)
+
+    def resumed(state):
+        other = StepNFT(ckpt["policy"], cfg, iterations=4, generator=torch.Generator())
+        other.load_state_dict(ckpt["state"]["algorithm"] | state)
+        assert other.ema.lerobot.model.vlm_with_expert.vlm is other.policy.lerobot.model.vlm_with_expert.vlm
+        return other.ema.state_dict()
+
+    for state in ({}, {"ema": whole}):  # this checkpoint, and one holding the whole EMA state
+        again = resumed(state)
+        assert again.keys() == whole.keys() and all(torch.equal(again[k], whole[k]) for k in whole)
+
+
+@needs_lerobot
 def test_save_load_round_trip_gives_the_same_actions(tiny_folder, tmp_path):
     from stepnft.algos.sft import SFTConfig, sft_train
     from stepnft.policies.base import load_policy
