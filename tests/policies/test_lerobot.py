@@ -289,17 +289,38 @@ def test_the_update_encodes_each_calls_prefix_once_with_the_per_step_losses(tiny
 
 
 @needs_lerobot
-def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
-    """Rows of the KV cache and masks: denoising against a selected prefix is denoising each call
-    against its own."""
+def test_a_grpo_update_shares_each_calls_prefix_and_trains_the_expert(tiny_folder, monkeypatch):
+    """GRPO's clipped surrogate (PPO's too: ``policy_gradient_update``) on whole calls: one
+    prefix per call, and only the trained parameters move."""
+    from stepnft.algos.base import make_optimizer
+    from stepnft.algos.grpo import GRPOConfig
+    from stepnft.algos.likelihood import policy_gradient_update
+
     policy = load(tiny_folder)
-    obs = policy.processor(raw_obs(3))
-    rows = torch.tensor([2, 0, 0, 1, 2])
-    x, t = torch.randn(5, *policy.chunk_shape), torch.tensor([1.0, 0.6, 0.3, 1.0, 0.3])
-    with torch.no_grad():
-        shared = policy(obs, x, t, context_rows=rows)
-        own = policy.velocity({k: v[rows] for k, v in obs.items()}, x, t)
-    torch.testing.assert_close(shared, own, rtol=1e-5, atol=1e-6)
+    batch = rollout_batch(policy)
+    prefixes = count_prefixes(policy, monkeypatch)
+    before = {n: p.detach().clone() for n, p in policy.named_parameters()}
+    cfg = GRPOConfig(lr=1e-3, minibatch_size=24, update_epochs=1, group_size=2)
+    metrics = policy_gradient_update(policy, make_optimizer(policy.parameters(), cfg), batch,
+                                     torch.where(torch.arange(16) % 2 == 0, 1.0, -1.0), cfg,
+                                     torch.Generator().manual_seed(0))
+    assert metrics["losses/update_steps"] == 2 and prefixes == [8, 8]  # 8 calls of 3 recorded steps each
+    changed = {n for n, p in policy.named_parameters() if not torch.equal(p, before[n])}
+    assert changed and changed <= {n for n, p in policy.named_parameters() if p.requires_grad}
+
+
+@needs_lerobot
+def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
+    """Rows of the KV cache and masks (without the cache: of the observations): denoising against
+    a selected prefix is denoising each call against its own."""
+    for policy in (load(tiny_folder), load(tiny_folder, prefix_cache=False)):
+        obs = policy.processor(raw_obs(3))
+        rows = torch.tensor([2, 0, 0, 1, 2])
+        x, t = torch.randn(5, *policy.chunk_shape), torch.tensor([1.0, 0.6, 0.3, 1.0, 0.3])
+        with torch.no_grad():
+            shared = policy(obs, x, t, context_rows=rows)
+            own = policy.velocity({k: v[rows] for k, v in obs.items()}, x, t)
+        torch.testing.assert_close(shared, own, rtol=1e-5, atol=1e-6)
 
 
 @needs_lerobot
