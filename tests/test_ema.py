@@ -2,7 +2,7 @@ import pytest
 import torch
 from torch import nn
 
-from stepnft.ema import ema_decay, ema_update, make_ema_copy
+from stepnft.ema import ema_decay, ema_state_dict, ema_update, load_ema_state_dict, make_ema_copy, shared_state_names
 
 
 def test_schedule_endpoints_and_monotone():
@@ -37,3 +37,25 @@ def test_update_rule_and_frozen_modules_shared():
     assert torch.all(ema.stat == 7.0)
     ema_update(ema, model, decay=1.0)
     torch.testing.assert_close(ema.head.weight, 0.25 * old + 0.75 * model.head.weight)
+
+
+def test_the_ema_state_leaves_out_the_shared_frozen_modules_and_restores_exactly():
+    model = WithBackbone()
+    ema = make_ema_copy(model)
+    with torch.no_grad():
+        model.head.weight.add_(1.0)
+        model.stat.fill_(3.0)
+    ema_update(ema, model, decay=0.5)
+    assert shared_state_names(ema, model) == {"backbone.weight", "backbone.bias"}
+    state = ema_state_dict(ema, model)
+    assert state.keys() == {"head.weight", "head.bias", "stat"}  # the backbone is saved with the model
+    again = make_ema_copy(model)
+    load_ema_state_dict(again, model, state)
+    assert again.backbone is model.backbone
+    assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), ema.state_dict().values()))
+    # a whole state dict, as checkpoints held before, loads the same
+    whole = make_ema_copy(model)
+    load_ema_state_dict(whole, model, ema.state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(whole.state_dict().values(), ema.state_dict().values()))
+    with pytest.raises(ValueError, match="1 entries missing \\(head.bias\\)"):
+        load_ema_state_dict(make_ema_copy(model), model, {k: v for k, v in state.items() if k != "head.bias"})

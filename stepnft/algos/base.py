@@ -73,7 +73,8 @@ class AlgoConfig(Settings):
     """Passes over each iteration's samples."""
     minibatch_size: Annotated[int, Range(ge=1)] = 128
     """Recorded denoising steps per gradient step, for every algorithm (with K recorded steps per
-    policy call, PPO and GRPO take whole calls: ``minibatch_size // K`` of them, at least one)."""
+    policy call, PPO and GRPO take whole calls: ``minibatch_size // K`` of them, at least one; so
+    does π-StepNFT with a policy that shares a call's prefix among its steps, a LeRobot VLA)."""
     nonfinite_patience: Annotated[int, Range(ge=1)] = 20
     """Optimizer steps in a row whose loss or gradient is not finite (each is skipped and counted
     as ``losses/skipped_nonfinite``) before the run stops with its last checkpoint intact."""
@@ -164,11 +165,27 @@ def make_optimizer(params, cfg: AlgoConfig) -> torch.optim.Optimizer:
     return torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps, weight_decay=cfg.weight_decay)
 
 
-def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor) -> Tensor:
+def call_step_rows(batch: Batch) -> Tensor:
+    """``[C, k]``: the rows of the recorded denoising steps of every policy call (k per call)."""
+    counts = torch.bincount(batch.call, minlength=batch.num_calls)
+    if batch.num_calls == 0 or bool((counts != counts[0]).any()) or int(counts[0]) == 0:
+        raise ValueError("every policy call needs the same number (>= 1) of recorded denoising steps")
+    return torch.argsort(batch.call, stable=True).view(batch.num_calls, int(counts[0]))
+
+
+def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor,
+                  share_prefix: bool | None = None) -> Tensor:
     """The learner's velocity ``[R, H, A]`` at recorded steps ``rows`` of ``batch`` (which stays
-    on the CPU): their observations processed on the CPU, the forward pass on the policy's device."""
+    on the CPU): their observations processed on the CPU, the forward pass on the policy's device.
+    With ``share_prefix`` (None: ``policy.shares_prefix_in_update``) each policy call among
+    ``rows`` is processed and encoded once, and its steps read that context (``Policy.forward``'s
+    ``context_rows``): the same velocities, a VLA's prefix encoded once instead of per step."""
     x_t, t = to_device((batch.x_t[rows], batch.t[rows]), policy.device)
-    return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
+    if not (policy.shares_prefix_in_update if share_prefix is None else share_prefix):
+        return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
+    calls, context_rows = batch.call[rows].unique(return_inverse=True)
+    obs = policy.prepare({k: v[calls] for k, v in batch.obs.items()})
+    return learner(obs, x_t, t, context_rows=context_rows.to(policy.device))
 
 
 # --- what every algorithm may read from a batch ------------------------------------------------

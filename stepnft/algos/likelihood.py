@@ -14,7 +14,8 @@ from typing import Annotated, Callable, Literal
 import torch
 from torch import Tensor
 
-from stepnft.algos.base import AlgoConfig, MinibatchEpochs, NonFiniteGuard, call_progress, episode_weights, step_velocity
+from stepnft.algos.base import (AlgoConfig, MinibatchEpochs, NonFiniteGuard, call_progress, call_step_rows,
+                                episode_weights, step_velocity)
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
@@ -50,14 +51,6 @@ class LikelihoodConfig(AlgoConfig):
 
 
 # --- the likelihood of a policy call ------------------------------------------------------------
-def call_step_rows(batch: Batch) -> Tensor:
-    """``[C, k]``: the rows of the recorded denoising steps of every policy call (k per call)."""
-    counts = torch.bincount(batch.call, minlength=batch.num_calls)
-    if batch.num_calls == 0 or bool((counts != counts[0]).any()) or int(counts[0]) == 0:
-        raise ValueError("every policy call needs the same number (>= 1) of recorded denoising steps")
-    return torch.argsort(batch.call, stable=True).view(batch.num_calls, int(counts[0]))
-
-
 def steps_log_prob(batch: Batch, rows: Tensor, v: Tensor, noise_level: float) -> Tensor:
     """``[R]`` log-density of recorded steps ``rows`` under velocity ``v`` ``[R, H, A]``, over
     the chunk positions their call executed (on ``v``'s device)."""

@@ -14,11 +14,11 @@ import torch
 from torch import Tensor
 
 from stepnft.algos.base import (AlgoConfig, Algorithm, MinibatchEpochs, NonFiniteGuard, RolloutSpec, call_progress,
-                                episode_weights, step_velocity)
+                                call_step_rows, episode_weights, step_velocity)
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.distributed import data_parallel, shard_forward
-from stepnft.ema import ema_decay, ema_update, make_ema_copy
+from stepnft.ema import ema_decay, ema_state_dict, ema_update, load_ema_state_dict, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
 from stepnft.settings import Range
@@ -188,7 +188,12 @@ def stepnft_update(
     y = step_labels(batch, cfg)
     weights = sample_weights(batch, y, cfg)
     epochs = MinibatchEpochs(cfg, guard)
-    for idx in epochs.minibatches(batch.num_steps, generator):
+    if policy.shares_prefix_in_update:  # whole calls: a call's recorded steps then share one prefix encoding
+        rows = call_step_rows(batch)
+        minibatches = (rows[calls].flatten() for calls in epochs.minibatches(batch.num_calls, generator, rows.shape[1]))
+    else:  # random steps (the MLP's path, kept bit for bit)
+        minibatches = epochs.minibatches(batch.num_steps, generator)
+    for idx in minibatches:
         w = None if weights is None else weights[idx]
         if w is not None and not bool(w.sum() > 0):
             epochs.skip()  # nothing to learn here; an Adam step on zero gradients would still move
@@ -244,8 +249,9 @@ class StepNFT(Algorithm):
         return {"charts/ema_decay": decay}
 
     def state_dict(self) -> dict[str, Any]:
-        return super().state_dict() | {"ema": self.ema.state_dict()}
+        # The EMA copy's own tensors only: the frozen modules it shares are saved with the policy.
+        return super().state_dict() | {"ema": ema_state_dict(self.ema, self.policy)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
-        self.ema.load_state_dict(state["ema"])
+        load_ema_state_dict(self.ema, self.policy, state["ema"])

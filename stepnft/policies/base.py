@@ -102,6 +102,13 @@ class Policy(nn.Module, ABC):
 
     type: ClassVar[str]
     config_class: ClassVar[type]
+    shares_prefix_in_update: ClassVar[bool] = False
+    """Whether the update encodes each policy call's observation once and shares that context
+    among the call's recorded denoising steps (``forward(..., context_rows=...)``), with
+    minibatches of whole calls. True for the LeRobot VLAs, whose prefix (vision encoder and VLM
+    layers) costs far more than a denoising step. False keeps the per-step path, one encoding
+    per recorded step in minibatches of steps: the MLP's published results depend on its random
+    streams and float sums, which this keeps bit for bit."""
 
     def __init__(self, config):
         super().__init__()
@@ -137,12 +144,24 @@ class Policy(nn.Module, ABC):
         (``self.processor``), then moved."""
         return to_device(self.processor(raw), self.device)
 
+    def select_context(self, context: Any, rows: Tensor) -> Any:
+        """The context of rows ``rows`` ``[R]`` (indices into its batch, repeats allowed) of an
+        encoded ``context``: how one encoding per policy call serves each of its recorded steps.
+        Here a tensor's rows; a policy whose context is another structure (a KV cache and its
+        masks) overrides it. Gradients flow back to the shared encoding."""
+        return context[rows]
+
     def velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
         """``v_θ(x_t, t | o)`` for processed ``obs``: the training forward pass."""
         return self.denoise(self.encode(obs), x_t, t)
 
-    def forward(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
-        return self.velocity(obs, x_t, t)
+    def forward(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor, context_rows: Tensor | None = None) -> Tensor:
+        """:meth:`velocity`; with ``context_rows`` ``[R]``, ``obs`` holds one row per policy call
+        and step ``i`` (``x_t[i]``, ``t[i]``) reads call ``context_rows[i]``, encoded once for all
+        of its steps (the update of a policy that :attr:`shares_prefix_in_update`)."""
+        if context_rows is None:
+            return self.velocity(obs, x_t, t)
+        return self.denoise(self.select_context(self.encode(obs), context_rows), x_t, t)
 
     def env_actions(self, chunk: Tensor) -> Tensor:
         """Sampled chunk ``[..., H, A]`` -> the actions the env executes (a LeRobot policy

@@ -171,6 +171,8 @@ def test_the_algorithm_owns_ema_optimizer_and_their_state():
     algo.update(batch)
     assert algo.end_iteration(0) == {"charts/ema_decay": pytest.approx(0.1)}
     state = algo.state_dict()
+    # the MLP shares no module with its EMA copy: its checkpoints keep the whole EMA state, as before
+    assert state["ema"].keys() == algo.ema.state_dict().keys()
     other = make_algorithm(StepNFTConfig(noise_level=0.3, lr=1e-2), make_batch(n=64)[0], 10, torch.Generator())
     other.load_state_dict(state)
     assert all(torch.equal(a, b) for a, b in zip(other.ema.state_dict().values(), algo.ema.state_dict().values()))

@@ -236,6 +236,128 @@ def test_a_stepnft_update_changes_only_the_trained_parameters(tiny_folder, scope
     assert any("state_proj" in n for n in changed) == (scope == "expert+state")
 
 
+def count_prefixes(policy, monkeypatch) -> list[int]:
+    """Prefixes SmolVLA embeds (images through the vision encoder, into the VLM) per call of its
+    ``_embed_prefix``, appended to the returned list."""
+    rows, embed = [], policy._embed_prefix
+
+    def counted(obs):
+        rows.append(obs["observation.state"].shape[0])
+        return embed(obs)
+
+    monkeypatch.setattr(policy, "_embed_prefix", counted)
+    return rows
+
+
+@needs_lerobot
+@pytest.mark.parametrize("scope", ["expert", "vlm"])
+def test_the_update_encodes_each_calls_prefix_once_with_the_per_step_losses(tiny_folder, scope, monkeypatch):
+    """``record_steps: all`` (K = 3 recorded steps per call): π-StepNFT's update takes whole calls
+    and encodes each call's prefix once per minibatch, K = 3 times fewer prefixes than the
+    per-step path on the same minibatches, with the same losses and gradients (within float
+    rounding: 1e-4 relative), into the VLM's layers too when they train (``train: vlm``)."""
+    import functools
+
+    from stepnft.algos import stepnft as stepnft_module
+    from stepnft.algos.base import step_velocity
+    from stepnft.algos.stepnft import StepNFTConfig, stepnft_update
+
+    batch = rollout_batch(load(tiny_folder))  # 16 calls, all 3 steps of each
+    cfg = StepNFTConfig(minibatch_size=24, update_epochs=2, max_drift=None, label_balance="none")
+    runs = {}
+    for share in (True, False):
+        policy = load(tiny_folder, train=scope).train()
+        assert policy.shares_prefix_in_update and policy.prefix_trainable == (scope == "vlm")
+        prefixes = count_prefixes(policy, monkeypatch)
+        if not share:  # the per-step path (one prefix per recorded step) on the same minibatches
+            monkeypatch.setattr(stepnft_module, "step_velocity", functools.partial(step_velocity, share_prefix=False))
+        # lr 0: the weights stay, and the gradient of the last minibatch stays in .grad to compare
+        metrics = stepnft_update(policy, torch.optim.SGD(policy.parameters(), lr=0.0), batch, cfg,
+                                 torch.Generator().manual_seed(0))
+        grads = {n: p.grad for n, p in policy.named_parameters() if p.grad is not None}
+        runs[share] = metrics, prefixes, grads
+    (shared, shared_prefixes, shared_grads), (per_step, step_prefixes, step_grads) = runs[True], runs[False]
+    assert shared["losses/update_steps"] == 4 and shared["losses/skipped_nonfinite"] == 0
+    assert shared_prefixes == [8] * 4 and step_prefixes == [24] * 4  # 8 calls (24 recorded steps) per minibatch
+    assert sum(step_prefixes) >= 3 * sum(shared_prefixes)
+    for key, value in shared.items():
+        assert value == pytest.approx(per_step[key], rel=1e-4, abs=1e-6), key
+    assert shared_grads.keys() == step_grads.keys()
+    assert any(".vlm." in n and bool(g.abs().sum() > 0) for n, g in shared_grads.items()) == (scope == "vlm")
+    for name, grad in shared_grads.items():
+        torch.testing.assert_close(grad, step_grads[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+@needs_lerobot
+def test_a_grpo_update_shares_each_calls_prefix_and_trains_the_expert(tiny_folder, monkeypatch):
+    """GRPO's clipped surrogate (PPO's too: ``policy_gradient_update``) on whole calls: one
+    prefix per call, and only the trained parameters move."""
+    from stepnft.algos.base import make_optimizer
+    from stepnft.algos.grpo import GRPOConfig
+    from stepnft.algos.likelihood import policy_gradient_update
+
+    policy = load(tiny_folder)
+    batch = rollout_batch(policy)
+    prefixes = count_prefixes(policy, monkeypatch)
+    before = {n: p.detach().clone() for n, p in policy.named_parameters()}
+    cfg = GRPOConfig(lr=1e-3, minibatch_size=24, update_epochs=1, group_size=2)
+    metrics = policy_gradient_update(policy, make_optimizer(policy.parameters(), cfg), batch,
+                                     torch.where(torch.arange(16) % 2 == 0, 1.0, -1.0), cfg,
+                                     torch.Generator().manual_seed(0))
+    assert metrics["losses/update_steps"] == 2 and prefixes == [8, 8]  # 8 calls of 3 recorded steps each
+    changed = {n for n, p in policy.named_parameters() if not torch.equal(p, before[n])}
+    assert changed and changed <= {n for n, p in policy.named_parameters() if p.requires_grad}
+
+
+@needs_lerobot
+def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
+    """Rows of the KV cache and masks (without the cache: of the observations): denoising against
+    a selected prefix is denoising each call against its own."""
+    for policy in (load(tiny_folder), load(tiny_folder, prefix_cache=False)):
+        obs = policy.processor(raw_obs(3))
+        rows = torch.tensor([2, 0, 0, 1, 2])
+        x, t = torch.randn(5, *policy.chunk_shape), torch.tensor([1.0, 0.6, 0.3, 1.0, 0.3])
+        with torch.no_grad():
+            shared = policy(obs, x, t, context_rows=rows)
+            own = policy.velocity({k: v[rows] for k, v in obs.items()}, x, t)
+        torch.testing.assert_close(shared, own, rtol=1e-5, atol=1e-6)
+
+
+@needs_lerobot
+def test_a_checkpoint_keeps_only_the_ema_copys_own_tensors_and_resumes_it_exactly(tiny_folder, tmp_path):
+    """``train: expert``: the EMA copy shares the frozen VLM and state projection with the
+    policy, so the checkpoint stores them once (in ``policy/``); resume rebuilds the EMA copy
+    exactly; a checkpoint holding the whole EMA state (as before) resumes too."""
+    from stepnft.algos.stepnft import StepNFT, StepNFTConfig
+    from stepnft.checkpoint import load_checkpoint, save_checkpoint
+
+    policy = load(tiny_folder)
+    cfg = StepNFTConfig(lr=1e-3, minibatch_size=24, update_epochs=1)
+    algo = StepNFT(policy, cfg, iterations=4, generator=torch.Generator().manual_seed(0))
+    algo.update(rollout_batch(algo.ema))
+    algo.end_iteration(0)
+    save_checkpoint(tmp_path, 1, policy, {"algorithm": algo.state_dict()})
+    ckpt = load_checkpoint(tmp_path)
+    saved = ckpt["state"]["algorithm"]["ema"]
+    frozen = {n for n, p in policy.named_parameters() if not p.requires_grad}
+    trained = {n for n, p in policy.named_parameters() if p.requires_grad}
+    assert frozen and not (saved.keys() & frozen) and trained <= saved.keys()
+    assert not any(".vlm_with_expert.vlm." in k or "state_proj" in k for k in saved)
+    whole = algo.ema.state_dict()
+    size = sum(v.numel() * v.element_size() for v in saved.values())
+    assert size < 0.6 * sum(v.numel() * v.element_size() for v in whole.values())  # 450 M: 22 % (trained share)
+
+    def resumed(state):
+        other = StepNFT(ckpt["policy"], cfg, iterations=4, generator=torch.Generator())
+        other.load_state_dict(ckpt["state"]["algorithm"] | state)
+        assert other.ema.lerobot.model.vlm_with_expert.vlm is other.policy.lerobot.model.vlm_with_expert.vlm
+        return other.ema.state_dict()
+
+    for state in ({}, {"ema": whole}):  # this checkpoint, and one holding the whole EMA state
+        again = resumed(state)
+        assert again.keys() == whole.keys() and all(torch.equal(again[k], whole[k]) for k in whole)
+
+
 @needs_lerobot
 def test_save_load_round_trip_gives_the_same_actions(tiny_folder, tmp_path):
     from stepnft.algos.sft import SFTConfig, sft_train

@@ -28,6 +28,7 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable, ClassVar
 
+import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import CONFIG_NAME, Policy, non_finite
@@ -51,6 +52,18 @@ def lazy(target: str) -> Callable[[], Any]:
     return lambda: getattr(importlib.import_module(module), name)
 
 
+def select_rows(tree: Any, rows: Tensor) -> Any:
+    """Rows ``rows`` (dim 0) of every tensor in a tree of dicts, lists and tuples (a prefix's
+    masks and key/value cache); anything else as it is."""
+    if torch.is_tensor(tree):
+        return tree.index_select(0, rows.to(tree.device))
+    if isinstance(tree, dict):
+        return {k: select_rows(v, rows) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(select_rows(v, rows) for v in tree)
+    return tree
+
+
 @contextlib.contextmanager
 def quiet():
     """LeRobot and transformers print progress lines while building; keep stdout for stepnft."""
@@ -62,6 +75,9 @@ class LeRobotFlowPolicy(Policy):
     """A LeRobot flow VLA (``self.lerobot``) with LeRobot's pipelines as its processor."""
 
     config_class = LeRobotPolicyConfig
+    # The prefix (vision encoder, VLM layers) dominates a velocity's cost: the update encodes it
+    # once per policy call and shares it among the call's recorded steps (select_context).
+    shares_prefix_in_update = True
     lerobot_class: ClassVar[Callable[[], type]]
     """The LeRobot policy class (imported on use)."""
     make_pipelines: ClassVar[Callable[[], Callable]]

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import PolicyUnavailable
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, select_rows
 
 from lerobot.policies.pi0.modeling_pi0 import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS  # noqa: E402
@@ -112,6 +112,14 @@ class PI0Adapter(LeRobotFlowPolicy):
     def _fresh_cache(self, cache):
         """A new DynamicCache over the same prefix tensors: the step may extend it, not the prefix."""
         return type(cache).from_legacy_cache(cache.to_legacy_cache())
+
+    def select_context(self, context: PiPrefix, rows: Tensor) -> PiPrefix:
+        """The prefix of calls ``rows``: rows of its mask, of its cache's key/value tensors (in a
+        new cache object) and of the state."""
+        cache = context.past_key_values
+        return PiPrefix(select_rows(context.pad_masks, rows),
+                        type(cache).from_legacy_cache(select_rows(cache.to_legacy_cache(), rows)),
+                        select_rows(context.state, rows))
 
     def denoise(self, context: PiPrefix, x_t: Tensor, t: Tensor) -> Tensor:
         cache = self._fresh_cache(context.past_key_values)

@@ -10,12 +10,12 @@ Flow-SDE step sees the unmodified prefix. Times and velocities need no conversio
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor, nn
 
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, select_rows
 
 from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
@@ -95,6 +95,12 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
                 attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
                 past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
         return SmolVLAPrefix(pad_masks, past_key_values)
+
+    def select_context(self, context: SmolVLAPrefix, rows: Tensor) -> SmolVLAPrefix:
+        """The prefix of calls ``rows``: rows of its padding mask and of every layer's cached
+        keys and values (without the cache: of the observations)."""
+        return replace(context, pad_masks=select_rows(context.pad_masks, rows),
+                       past_key_values=select_rows(context.past_key_values, rows), obs=select_rows(context.obs, rows))
 
     # --- the action expert, once per denoising step ------------------------------------------------
     def denoise(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
