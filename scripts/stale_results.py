@@ -7,7 +7,8 @@ A folder is *stale* when ``stepnft/`` or ``configs/`` changed after that commit:
 no longer be what the code gives (a change that keeps every number, e.g. a refactor checked
 bit for bit, still counts unless it is listed in ``benchmarks/results/neutral_commits.txt``:
 one commit per line, then how it was shown to change no figure, e.g. a run's metrics and weights
-compared bit for bit before and after). A commit that changes only files under ``configs/``
+compared bit for bit before and after; ``except:a,b`` after the commit names folders it still
+counts for). A commit that changes only files under ``configs/``
 counts for a folder only if a command the folder records (``command`` in its JSON files) names
 one of those files, or one of its commands names no ``--config`` (the default config may be one
 of them). Exit code 0; with ``--fail`` 1 when any folder is stale.
@@ -75,14 +76,25 @@ def folder_commit(root: Path, folder: Path) -> tuple[str | None, bool]:
     return git(root, "log", "-1", "--format=%h", "--", str(folder.relative_to(root))) or None, False
 
 
-def neutral_commits(root: Path) -> list[str]:
-    """The commits listed as changing no figure (first word of each line; ``#`` comments)."""
+def neutral_commits(root: Path, folder: str | None = None) -> list[str]:
+    """The commits listed as changing no figure (first word of each line; ``#`` comments); a
+    line may name folders it does not hold for, ``except:name,name`` as its second word (e.g. a
+    change that keeps every MetaWorld figure but moves the LIBERO ones)."""
     path = root / NEUTRAL
     lines = path.read_text().splitlines() if path.is_file() else []
-    return [line.split()[0] for line in lines if line.strip() and not line.lstrip().startswith("#")]
+    neutral = []
+    for line in lines:
+        words = line.split()
+        if not words or line.lstrip().startswith("#"):
+            continue
+        if len(words) > 1 and words[1].startswith("except:") and folder in words[1][7:].split(","):
+            continue
+        neutral.append(words[0])
+    return neutral
 
 
-def changes_since(root: Path, commit: str, recorded: bool, commands: list[str] | None = None) -> list[str]:
+def changes_since(root: Path, commit: str, recorded: bool, commands: list[str] | None = None,
+                  folder: str | None = None) -> list[str]:
     """Commits that changed the code the results depend on since they were made: after a
     recorded commit, or since the parent of the commit that committed them (its own code
     changes count: the results were made before it); those listed as neutral do not count, nor
@@ -92,7 +104,7 @@ def changes_since(root: Path, commit: str, recorded: bool, commands: list[str] |
     base = commit if recorded else f"{commit}~1"
     span = ["HEAD"] if not recorded and not git(root, "rev-parse", "--verify", "--quiet", base) else [f"{base}..HEAD"]
     log = git(root, "log", "--format=%H %h %ad %s", "--date=short", *span, "--", *DEPENDS_ON).splitlines()
-    neutral = neutral_commits(root)
+    neutral = neutral_commits(root, folder)
     counted = []
     for line in log:
         if any(line.startswith(n) for n in neutral):
@@ -116,7 +128,7 @@ def main(argv=None) -> int:
         if commit is None:
             rows.append((True, folder.name, "not committed", []))
             continue
-        changes = changes_since(root, commit, recorded, recorded_commands(folder))
+        changes = changes_since(root, commit, recorded, recorded_commands(folder), folder.name)
         rows.append((bool(changes), folder.name, f"{'recorded' if recorded else 'committed in'} {commit}", changes))
     for stale, name, where, changes in sorted(rows, key=lambda r: (not r[0], r[1])):
         state = f"STALE ({len(changes)} code commits since)" if stale else "current"

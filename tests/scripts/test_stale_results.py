@@ -88,3 +88,23 @@ def test_a_config_file_counts_only_for_folders_whose_commands_read_it(tmp_path):
     (tmp_path / "stepnft" / "core.py").write_text("x = 2\n")
     git(tmp_path, "commit", "-qam", "the package changes")
     assert stale(tmp_path)["uses_a"] is True
+
+
+def test_a_neutral_commit_may_name_the_folders_it_still_counts_for(tmp_path):
+    git(tmp_path, "init", "-q")
+    (tmp_path / "stepnft").mkdir()
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\n")
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "code")
+    head = git(tmp_path, "rev-parse", "--short", "HEAD")
+    results = tmp_path / "benchmarks" / "results"
+    for name in ("metaworld", "libero"):
+        (results / name).mkdir(parents=True)
+        (results / name / "r.json").write_text(json.dumps({"commit": head}))
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "results")
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\ny = 2  # libero only\n")
+    git(tmp_path, "commit", "-qam", "a libero change")
+    change = git(tmp_path, "rev-parse", "--short", "HEAD")
+    (results / "neutral_commits.txt").write_text(f"{change}  except:libero,vla  MetaWorld bit for bit\n")
+    assert stale(tmp_path) == {"metaworld": False, "libero": True}
