@@ -38,9 +38,10 @@ class Job:
 def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     """``base`` with the command's overrides set on the fields that declare them (``--tasks``:
     ``env.tasks``, ``--env-steps``: ``env_step_budget``, ``--eval-episodes``: ``eval.episodes``),
-    so those sections check them; then what every run of a comparison shares: one torch thread,
-    no ``init``, and enough iterations that the budget ends every run (an episode costs at least
-    one env step)."""
+    so those sections check them; then what every run of a comparison shares: one torch thread
+    and enough iterations that the budget ends every run (an episode costs at least one env
+    step). The base config's ``init``, if any, is the policy every seed's SFT starts from (``stepnft
+    sft --init``: e.g. a new SmolVLA folder); every RL run starts from its seed's SFT policy."""
     try:
         cfg = dataclasses.replace(
             base, env_step_budget=base.env_step_budget if cmd.env_steps is None else cmd.env_steps,
@@ -57,7 +58,7 @@ def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     if cfg.eval.episodes < 1:
         raise ValueError("a comparison evaluates every run: --eval-episodes (eval.episodes) must be >= 1")
     iterations = max(cfg.iterations, math.ceil(cfg.env_step_budget / cfg.episodes_per_iteration))
-    return dataclasses.replace(cfg, num_threads=1, init=None, iterations=iterations)
+    return dataclasses.replace(cfg, num_threads=1, iterations=iterations)
 
 
 def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
@@ -115,9 +116,10 @@ def env_flags(env) -> list[str]:
 
 def comparison_settings(base: TrainConfig) -> dict:
     """What every run of the comparison shares (``OUT/compare.json``): the config without the
-    per-run fields (run folder, seed, init, the demonstrations' folder and seed)."""
+    per-run fields (run folder, seed, the demonstrations' folder and seed); ``init`` is the SFT
+    start (the RL runs' own is their seed's SFT policy)."""
     settings = to_dict(base)
-    for per_run in ("run_dir", "seed", "init"):
+    for per_run in ("run_dir", "seed"):
         settings.pop(per_run)
     settings["demos"] = {k: v for k, v in settings["demos"].items() if k not in ("path", "seed")}
     return settings
