@@ -9,7 +9,7 @@ weights, the update.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Callable, Literal
+from typing import Annotated, Callable, Literal, Sequence
 
 import torch
 from torch import Tensor
@@ -104,6 +104,8 @@ def policy_gradient_update(
     generator: torch.Generator | None = None,
     extra_step: Callable[[Tensor], dict[str, float]] | None = None,
     guard: NonFiniteGuard | None = None,
+    joint_loss: Callable[[Tensor], tuple[Tensor, dict[str, float]]] | None = None,
+    joint_params: Sequence[Tensor] = (),
 ) -> dict[str, float]:
     """``cfg.update_epochs`` epochs of clipped-surrogate steps over minibatches of whole policy calls
     (``cfg.minibatch_size`` recorded steps: ``minibatch_size // K`` calls of K recorded steps),
@@ -111,8 +113,11 @@ def policy_gradient_update(
     that every episode weighs the same (folded into its advantage: a positive weight commutes with
     the clip). ``log π_old`` comes from the recorded ``v_old`` (the acting
     policy is the policy itself, so no extra forward pass). ``extra_step(calls)`` runs after each
-    policy step on the same calls (PPO's critic); its metrics are averaged over steps. Steps with a
-    non-finite loss or gradient are skipped (``guard``). Returns metrics averaged over minibatches.
+    policy step on the same calls (PPO's critic); its metrics are averaged over steps.
+    ``joint_loss(calls)`` is instead added to the policy's loss before its step (PPO's critic on
+    the policy's own features), its ``joint_params`` stepped and clipped with the policy's by
+    ``optimizer``. Steps with a non-finite loss or gradient are skipped (``guard``). Returns
+    metrics averaged over minibatches.
     Under ``torchrun`` the processes share each minibatch (``stepnft.distributed``)."""
     guard = guard or NonFiniteGuard(cfg)
     learner = data_parallel(policy)
@@ -136,8 +141,14 @@ def policy_gradient_update(
         epochs.measure(metrics)
         if epochs.stop_if(cfg.target_kl is not None and metrics["approx_kl"] > cfg.target_kl):
             break
-        if epochs.step(loss, list(policy.parameters()), optimizer) is not None and extra_step is not None:
-            epochs.measure_step(extra_step(calls))
+        joint_metrics = {}
+        if joint_loss is not None:
+            joint, joint_metrics = joint_loss(calls)
+            loss = loss + joint
+        if epochs.step(loss, list(policy.parameters()) + list(joint_params), optimizer) is not None:
+            epochs.measure_step(joint_metrics)
+            if extra_step is not None:
+                epochs.measure_step(extra_step(calls))
     out = {f"losses/{k}": float("nan") for k in POLICY_METRICS}
     out |= {f"losses/{k}": v for k, v in epochs.means().items()} | epochs.counts("kl_stopped")
     return out | {"losses/log_prob": float(old_log_prob.mean()),

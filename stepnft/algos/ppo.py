@@ -14,7 +14,7 @@ from typing import Annotated, Any
 import torch
 from torch import Tensor, nn
 
-from stepnft.algos.base import Algorithm, NonFiniteGuard
+from stepnft.algos.base import Algorithm, NonFiniteGuard, make_optimizer
 from stepnft.algos.likelihood import LikelihoodConfig, call_rewards, call_weights, policy_gradient_update
 from stepnft.batch import Batch
 from stepnft.devices import to_device
@@ -44,6 +44,19 @@ class PPOConfig(LikelihoodConfig):
     value_clip: Annotated[float | None, Range(gt=0)] = None
     """Keep the critic's prediction within this of its value at rollout time, PPO-style: the loss
     is the larger of the clipped and unclipped errors (RLinf: 0.2); None: off."""
+    critic_shares_encoder: bool = False
+    """False: the value head reads the policy's features detached (only the policy's loss trains
+    the encoder) and has its own Adam at ``critic_lr``. True: the value head sits on the policy's
+    own features, as a value head on a VLA does (πRL), and the encoder is trained by the policy's
+    loss plus ``value_coef`` times the critic's, in one backward and one step of one optimizer
+    (the policy's AdamW, the value head a second parameter group at ``critic_lr`` with Adam's
+    betas and no weight decay), the gradient clipped over both. Only encoder parameters that train
+    receive it (a camera policy's CNN and instruction projection; a SmolVLA's VLM with ``train:
+    vlm``, its state projection with ``expert+state``); with a frozen prefix (``train: expert``)
+    or a state-only policy the head only reads the features."""
+    value_coef: Annotated[float, Range(gt=0)] = 0.5
+    """With ``critic_shares_encoder``: the weight of the critic's loss in the joint loss
+    (CleanRL's ``vf_coef``); unused otherwise (the critic then has its own optimizer)."""
 
 
 # --- advantages ---------------------------------------------------------------------------------
@@ -67,8 +80,8 @@ def gae(reward: Tensor, value: Tensor, done: Tensor, episode: Tensor, gamma: flo
 
 # --- the critic ---------------------------------------------------------------------------------
 class ValueHead(nn.Module):
-    """``V_φ(o)``: a small MLP on the policy's observation features (detached: the critic does
-    not shape the policy's encoder)."""
+    """``V_φ(o)``: a small MLP on the policy's value features (``policy.value_features``),
+    detached unless ``critic_shares_encoder``."""
 
     def __init__(self, in_dim: int, hidden_dim: int):
         super().__init__()
@@ -97,9 +110,9 @@ def value_loss(value: Tensor, old_value: Tensor, returns: Tensor, cfg: PPOConfig
 
 
 def call_features(policy: Policy, batch: Batch) -> Tensor:
-    """``[C, F]`` detached observation features of every policy call (on the policy's device)."""
+    """``[C, F]`` detached value features of every policy call (on the policy's device)."""
     with torch.no_grad():
-        return policy.encode(policy.prepare(batch.obs)).flatten(1).detach()
+        return policy.value_features(policy.prepare(batch.obs)).detach()
 
 
 # --- the algorithm ------------------------------------------------------------------------------
@@ -111,10 +124,18 @@ class PPO(Algorithm):
     # The critic is built on the first batch, when the feature size is known.
     critic: ValueHead | None = None
     critic_optimizer: torch.optim.Optimizer | None = None
+    """The value head's own Adam (None with ``critic_shares_encoder``: it is a group of ``optimizer``)."""
     critic_guard: NonFiniteGuard | None = None
 
     def _build_critic(self, in_dim: int) -> None:
         self.critic = ValueHead(in_dim, self.cfg.critic_hidden_dim).to(self.policy.device)
+        if self.cfg.critic_shares_encoder:
+            # One loss, one backward, one step: the head joins the policy's optimizer as its own group,
+            # updated by Adam's rule at critic_lr as the separate critic is (AdamW without weight decay).
+            self.optimizer = make_optimizer(self.policy.parameters(), self.cfg)
+            self.optimizer.add_param_group({"params": list(self.critic.parameters()), "lr": self.cfg.critic_lr,
+                                            "betas": (0.9, 0.999), "eps": 1e-8, "weight_decay": 0.0})
+            return
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.critic_lr)
         self.critic_guard = NonFiniteGuard(self.cfg)
 
@@ -134,27 +155,45 @@ class PPO(Algorithm):
             advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
         weights = call_weights(batch, cfg)
 
-        def critic_step(calls: Tensor) -> dict[str, float]:
+        def critic_loss(calls: Tensor, features: Tensor) -> Tensor:
             old, target, w = to_device((values[calls], returns[calls], None if weights is None else weights[calls]),
                                        features.device)
-            loss = value_loss(self.critic(features[calls]), old, target, cfg, w)
+            return value_loss(self.critic(features), old, target, cfg, w)
+
+        def critic_step(calls: Tensor) -> dict[str, float]:
+            loss = critic_loss(calls, features[calls])
             self.critic_guard.step(loss, list(self.critic.parameters()), self.critic_optimizer)
             return {"value_loss": loss.item()}
 
+        def shared_critic_loss(calls: Tensor) -> tuple[Tensor, dict[str, float]]:
+            # The value head on the encoder's current features, with their gradient (under torchrun
+            # every process computes it on the whole minibatch: the same gradient, which DDP's mean keeps).
+            obs = self.policy.prepare({k: v[calls] for k, v in batch.obs.items()})
+            loss = critic_loss(calls, self.policy.value_features(obs))
+            return cfg.value_coef * loss, {"value_loss": loss.item()}
+
         self.policy.train()
-        metrics = policy_gradient_update(self.policy, self.optimizer, batch, advantages, cfg, self.generator,
-                                         critic_step, self.guard)
+        if cfg.critic_shares_encoder:
+            metrics = policy_gradient_update(self.policy, self.optimizer, batch, advantages, cfg, self.generator,
+                                             guard=self.guard, joint_loss=shared_critic_loss,
+                                             joint_params=list(self.critic.parameters()))
+        else:
+            metrics = policy_gradient_update(self.policy, self.optimizer, batch, advantages, cfg, self.generator,
+                                             critic_step, self.guard)
         return metrics | raw | {"losses/explained_variance": explained, "charts/value_mean": float(values.mean())}
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         if self.critic is not None:
-            state |= {"critic": self.critic.state_dict(), "critic_optimizer": self.critic_optimizer.state_dict()}
+            state |= {"critic": self.critic.state_dict()}
+        if self.critic_optimizer is not None:
+            state |= {"critic_optimizer": self.critic_optimizer.state_dict()}
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        super().load_state_dict(state)
-        if "critic" in state:
+        if "critic" in state:  # first: a shared critic is a parameter group of the policy's optimizer
             self._build_critic(state["critic"]["net.0.weight"].shape[1])
             self.critic.load_state_dict(state["critic"])
+        super().load_state_dict(state)
+        if "critic" in state and self.critic_optimizer is not None:
             self.critic_optimizer.load_state_dict(state["critic_optimizer"])

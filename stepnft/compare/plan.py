@@ -38,9 +38,10 @@ class Job:
 def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     """``base`` with the command's overrides set on the fields that declare them (``--tasks``:
     ``env.tasks``, ``--env-steps``: ``env_step_budget``, ``--eval-episodes``: ``eval.episodes``),
-    so those sections check them; then what every run of a comparison shares: one torch thread,
-    no ``init``, and enough iterations that the budget ends every run (an episode costs at least
-    one env step)."""
+    so those sections check them; then what every run of a comparison shares: one torch thread
+    and enough iterations that the budget ends every run (an episode costs at least one env
+    step). The base config's ``init``, if any, is the policy every seed's SFT starts from (``stepnft
+    sft --init``: e.g. a new SmolVLA folder); every RL run starts from its seed's SFT policy."""
     try:
         cfg = dataclasses.replace(
             base, env_step_budget=base.env_step_budget if cmd.env_steps is None else cmd.env_steps,
@@ -57,7 +58,7 @@ def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     if cfg.eval.episodes < 1:
         raise ValueError("a comparison evaluates every run: --eval-episodes (eval.episodes) must be >= 1")
     iterations = max(cfg.iterations, math.ceil(cfg.env_step_budget / cfg.episodes_per_iteration))
-    return dataclasses.replace(cfg, num_threads=1, init=None, iterations=iterations)
+    return dataclasses.replace(cfg, num_threads=1, iterations=iterations)
 
 
 def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
@@ -67,7 +68,8 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
     # As given (relative to the working directory, as every run's --run-dir): the saved configs
     # then move with the folder.
     out = check_folder(cmd.out, "comparison", "--out")  # a new folder, or the comparison to resume
-    check_same_settings(out / "compare.json", comparison_settings(base))
+    defaults = comparison_settings(TrainConfig(algo=type(base.algo)()))
+    check_same_settings(out / "compare.json", comparison_settings(base), defaults)
     sft_jobs, run_jobs = [], []
     for seed in cmd.seeds:
         sft_dir = out / "sft" / f"seed{seed}"
@@ -115,10 +117,13 @@ def env_flags(env) -> list[str]:
 
 def comparison_settings(base: TrainConfig) -> dict:
     """What every run of the comparison shares (``OUT/compare.json``): the config without the
-    per-run fields (run folder, seed, init, the demonstrations' folder and seed)."""
+    per-run fields (run folder, seed, the demonstrations' folder and seed); ``init`` is the SFT
+    start (the RL runs' own is their seed's SFT policy)."""
     settings = to_dict(base)
-    for per_run in ("run_dir", "seed", "init"):
+    for per_run in ("run_dir", "seed"):
         settings.pop(per_run)
+    if settings.get("init") is None:  # as comparisons recorded it before init could be set
+        settings.pop("init", None)
     settings["demos"] = {k: v for k, v in settings["demos"].items() if k not in ("path", "seed")}
     return settings
 
@@ -130,14 +135,18 @@ def _flat(tree: dict, prefix: str = "") -> dict:
     return flat
 
 
-def check_same_settings(path: Path, settings: dict) -> None:
-    """Record the comparison's settings, or check a rerun asks for the same ones."""
+def check_same_settings(path: Path, settings: dict, defaults: dict | None = None) -> None:
+    """Record the comparison's settings, or check a rerun asks for the same ones. A setting the
+    recorded file lacks (one added to the code since) counts as the same if the rerun leaves it
+    at its default (``defaults``: the settings of a default config)."""
     settings = json.loads(json.dumps(settings))  # tuples as lists, as they come back from disk
     if not path.is_file():
         write_atomic(path, json.dumps(settings, indent=2))
         return
     old, new = _flat(json.loads(path.read_text())), _flat(settings)
-    diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    default = _flat(json.loads(json.dumps(defaults))) if defaults else {}
+    diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k)
+                  and not (k not in old and k in default and new.get(k) == default[k]))
     if diff:
         raise ValueError(f"{path.parent} holds a comparison with other settings (differs in: {', '.join(diff)}): "
                          "rerun it with its own --config and flags (algorithms and seeds may be added), or choose "

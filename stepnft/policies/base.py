@@ -5,7 +5,8 @@ A policy is a velocity field ``v_θ(x_t, t | o)`` over action chunks ``[H, A]``.
 vision-language prefix) and ``denoise(context, x_t, t)`` (the action expert), so sampling runs
 the encoder once and the denoiser K times. ``obs`` is the *processed* observation dict: raw
 observations go through ``policy.processor`` first (normalisation, instruction lookup), outside
-the network.
+the network. ``value_features(obs)`` gives the flat features a value head reads (PPO's critic):
+by default the encoder's output; a VLA, whose context is a key/value cache, gives its own.
 
 Saved as ``config.json`` (with ``"type"``) + ``model.safetensors`` + ``processor.safetensors``;
 loading dispatches on ``type`` and never unpickles. A policy saved in another layout (a LeRobot
@@ -162,6 +163,18 @@ class Policy(nn.Module, ABC):
         if context_rows is None:
             return self.velocity(obs, x_t, t)
         return self.denoise(self.select_context(self.encode(obs), context_rows), x_t, t)
+
+    def value_features(self, obs: dict[str, Tensor]) -> Tensor:
+        """``[B, F]`` features of processed ``obs`` that a value head reads (PPO's critic), with
+        gradients into the encoder where it trains (the caller detaches them, or not: PPO's
+        ``critic_shares_encoder``). Default: the context of :meth:`encode` flattened, for a policy
+        whose context is one tensor; a policy whose context is something else (a VLA's key/value
+        cache) overrides this."""
+        context = self.encode(obs)
+        if not torch.is_tensor(context):
+            raise NotImplementedError(f"{type(self).__name__}.encode gives a {type(context).__name__}, not a feature "
+                                      "tensor: the policy needs its own value_features for a value head")
+        return context.flatten(1)
 
     def env_actions(self, chunk: Tensor) -> Tensor:
         """Sampled chunk ``[..., H, A]`` -> the actions the env executes (a LeRobot policy

@@ -10,7 +10,7 @@ from stepnft.algos.base import make_algorithm
 from stepnft.algos.grpo import GRPOConfig, episode_scores, group_advantages
 from stepnft.algos.likelihood import (call_rewards, call_step_rows, call_weights, policy_gradient_update,
                                       shaped_rewards, steps_log_prob, success_rewards)
-from stepnft.algos.ppo import PPOConfig, gae, value_loss
+from stepnft.algos.ppo import PPOConfig, call_features, gae, value_loss
 from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.batch import Batch
 from stepnft.checkpoint import flatten_state, unflatten_state
@@ -234,3 +234,87 @@ def test_value_loss_squared_huber_and_clipped():
     assert clipped.item() == pytest.approx((0.5 * 2.8**2 + 0.02 + 0.0) / 3)
     weighted = value_loss(value, old, returns, PPOConfig(), weights=torch.tensor([0.0, 3.0, 0.0]))
     assert weighted.item() == pytest.approx(0.02)
+
+
+# --- the critic's features: policy.value_features, detached or shared ----------------------------
+def camera_batch(calls=24, gen_seed=0):
+    """A camera FlowPolicy (one 16 px view, no instruction) and a batch of its Flow-SDE calls,
+    episodes of 3 calls, every other one successful."""
+    g = torch.Generator().manual_seed(gen_seed)
+    torch.manual_seed(gen_seed)
+    policy = FlowPolicy(FlowPolicyConfig(state_dim=3, lang_dim=0, action_dim=2, horizon=2, n_exec=2, hidden_dim=32,
+                                         cameras=["corner"], image_size=16, image_channels=4, image_features=8))
+    episode = torch.arange(calls) // 3
+    n_episodes = calls // 3
+    obs = {"state": torch.randn(calls, 3, generator=g), "task": torch.zeros(calls, dtype=torch.int64),
+           "image": torch.randint(0, 256, (calls, 1, 3, 16, 16), generator=g, dtype=torch.uint8)}
+    sample = policy.sample(policy.prepare(obs), noise_level=0.5, generator=g)
+    batch = Batch(
+        episode_success=torch.arange(n_episodes) % 2 == 0, episode_task=torch.zeros(n_episodes, dtype=torch.int64),
+        episode_length=torch.full((n_episodes,), 6), episode_seed=torch.full((n_episodes,), -1), obs=obs,
+        actions=sample.actions, mask=torch.ones(calls, 2, dtype=torch.bool), reward=torch.zeros(calls),
+        done=torch.arange(calls) % 3 == 2, episode=episode, **sample.recorded_steps(every_step=False))
+    return policy, batch
+
+
+def test_value_features_are_the_encoders_output_by_default():
+    """The MLP's critic reads what it read before the seam: ``encode(obs)`` flattened, detached."""
+    policy, batch = camera_batch()
+    obs = policy.prepare(batch.obs)
+    features = call_features(policy, batch)
+    assert torch.equal(features, policy.encode(obs).flatten(1)) and not features.requires_grad
+    assert policy.value_features(obs).requires_grad  # the caller decides whether to detach
+
+    class CacheContext(FlowPolicy):
+        def encode(self, obs):
+            return {"kv": super().encode(obs)}
+
+    with pytest.raises(NotImplementedError, match="needs its own value_features"):
+        CacheContext(policy.config).value_features(obs)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_the_value_loss_alone_trains_the_encoder_only_when_the_critic_shares_it(shared):
+    """One PPO step whose policy loss cannot reach the CNN (the velocity net ignores the image
+    features: their input weights are 0, so their gradient is exactly 0): the CNN moves from the
+    value loss alone with ``critic_shares_encoder``, and not at all without it."""
+    policy, batch = camera_batch()
+    image_cols = slice(3, 3 + policy.image_encoder.out_dim)  # the context is [state, image features]
+    with torch.no_grad():
+        policy.net[0].weight[:, image_cols] = 0.0
+    cnn = {n: p.detach().clone() for n, p in policy.image_encoder.named_parameters()}
+    cfg = PPOConfig(noise_level=0.5, update_epochs=1, minibatch_size=64, critic_shares_encoder=shared)
+    algo = make_algorithm(cfg, policy, iterations=1, generator=torch.Generator().manual_seed(0))
+    metrics = algo.update(batch)
+    assert metrics["losses/update_steps"] == 1 and metrics["losses/value_loss"] > 0
+    moved = [n for n, p in policy.image_encoder.named_parameters() if not torch.equal(p, cnn[n])]
+    assert bool(moved) == shared, moved
+    # The wiring: a shared head is a second group of the policy's optimizer, at the critic's rate.
+    assert (algo.critic_optimizer is None) == shared
+    assert len(algo.optimizer.param_groups) == (2 if shared else 1)
+    if shared:
+        assert algo.optimizer.param_groups[1]["lr"] == cfg.critic_lr
+        assert algo.optimizer.param_groups[1]["params"] == list(algo.critic.parameters())
+
+
+def test_a_shared_critic_resumes_exactly_from_a_checkpoint():
+    policy, batch = camera_batch()
+    cfg = PPOConfig(noise_level=0.5, update_epochs=1, minibatch_size=16, critic_shares_encoder=True)
+    algo = make_algorithm(cfg, policy, iterations=2, generator=torch.Generator().manual_seed(0))
+    algo.update(batch)
+    state = algo.state_dict()
+    assert "critic" in state and "critic_optimizer" not in state  # its Adam state is in the policy's optimizer
+    skeleton, tensors = flatten_state(state)
+    copy = FlowPolicy(policy.config)
+    copy.load_state_dict(policy.state_dict())
+    fresh = make_algorithm(cfg, copy, iterations=2, generator=torch.Generator())
+    # (cloned: on the CPU the flattened tensors are the optimizer's own, which the next step changes in place)
+    fresh.load_state_dict(unflatten_state(skeleton, {k: v.clone() for k, v in tensors.items()}))
+    for a in (algo, fresh):
+        a.generator.manual_seed(5)
+        a.update(batch)
+    for a, b in ((policy, copy), (algo.critic, fresh.critic)):
+        for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+            assert torch.equal(x, y), name
+    with pytest.raises(ValueError, match="algo.value_coef"):
+        PPOConfig(value_coef=0.0)

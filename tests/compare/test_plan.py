@@ -83,3 +83,36 @@ def test_a_relative_out_folder_gives_relative_paths_in_the_saved_configs(tmp_pat
     assert run_jobs[2].config.init == "cmp/sft/seed1/policy" and run_jobs[2].config.seed == 1
     assert run_jobs[0].config.iterations == 10 and run_jobs[0].config.env_step_budget == 100
     assert run_jobs[0].config.algo.ema_horizon == 4  # the base config's iterations, not the budget's
+
+
+def test_an_init_policy_in_the_base_config_is_every_seeds_sft_start(tmp_path, monkeypatch):
+    """A LeRobot VLA enters a comparison as the base config's ``init`` (a new SmolVLA folder):
+    every seed's SFT fine-tunes it, every RL run starts from its seed's SFT policy."""
+    import json
+
+    from stepnft.config import save_config
+
+    save_config(dataclasses.replace(bandit_config(iterations=4, episodes_per_iteration=10), init="models/vla"),
+                tmp_path / "base.yaml")
+    monkeypatch.chdir(tmp_path)
+    sft_jobs, run_jobs, out = plan(CompareCommand(config="base.yaml", algos=["stepnft", "ppo"], seeds=[0, 1],
+                                                  env_steps=100, out="cmp"))
+    assert [j.config.init for j in sft_jobs] == ["models/vla", "models/vla"]
+    assert [j.config.init for j in run_jobs] == ["cmp/sft/seed0/policy"] * 2 + ["cmp/sft/seed1/policy"] * 2
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["init"] == "models/vla"  # a shared setting
+
+
+def test_a_setting_added_since_a_comparison_was_recorded_resumes_at_its_default(tmp_path):
+    import json
+
+    from stepnft.compare.plan import check_same_settings
+
+    recorded = {"algo": {"lr": 1e-4}, "seed_free": 1}
+    path = tmp_path / "compare.json"
+    path.write_text(json.dumps(recorded))
+    defaults = {"algo": {"lr": 3e-4, "mean_correction": True}, "seed_free": 1}
+    check_same_settings(path, {"algo": {"lr": 1e-4, "mean_correction": True}, "seed_free": 1}, defaults)
+    with pytest.raises(ValueError, match="differs in: algo.mean_correction"):  # the new setting changed
+        check_same_settings(path, {"algo": {"lr": 1e-4, "mean_correction": False}, "seed_free": 1}, defaults)
+    with pytest.raises(ValueError, match="differs in: algo.lr"):  # a recorded one changed
+        check_same_settings(path, {"algo": {"lr": 2e-4, "mean_correction": True}, "seed_free": 1}, defaults)

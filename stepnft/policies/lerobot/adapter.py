@@ -39,11 +39,15 @@ from stepnft.runs import write_atomic
 require_lerobot()
 
 from lerobot.configs.policies import PreTrainedConfig  # noqa: E402
+from lerobot.utils.constants import OBS_STATE  # noqa: E402
 
 from stepnft.policies.lerobot.processor import LeRobotProcessor  # noqa: E402
 
 LEROBOT_DIR = "lerobot"
 VLM_DIR = "vlm"
+VALUE_CHUNK = 32
+"""Calls per prefix pass of :meth:`LeRobotFlowPolicy.value_features`: PPO's pass over an
+iteration's calls (hundreds) would otherwise hold the vision encoder's activations for all at once."""
 
 
 def lazy(target: str) -> Callable[[], Any]:
@@ -104,6 +108,11 @@ class LeRobotFlowPolicy(Policy):
         """Set LeRobot's own fine-tuning flags for ``scope`` and apply them (its set_requires_grad)."""
         raise NotImplementedError
 
+    def prefix_hidden(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """The VLM's last-layer (normed) hidden states of the prefix ``[B, L, D]`` and its padding
+        mask ``[B, L]``: the same pass as :meth:`encode`'s cache."""
+        raise NotImplementedError
+
     def robot_actions(self, actions: Tensor) -> Tensor:
         """Model-specific output transform before un-normalisation (e.g. SmolVLA's Aloha adaptation)."""
         return actions
@@ -121,6 +130,23 @@ class LeRobotFlowPolicy(Policy):
             for module in prefix:
                 module.requires_grad_(False)
         return any(p.requires_grad for m in prefix for p in m.parameters())
+
+    # --- what a value head reads (PPO's critic) ---------------------------------------------------
+    def value_features(self, obs: dict[str, Tensor]) -> Tensor:
+        """``[B, D + S]``: the prefix's last-layer hidden states averaged over its valid tokens
+        (images, instruction and, for SmolVLA, the state token; as πRL's value head on the VLM),
+        then the normalised state ``[B, S]``. One prefix pass per call (in chunks of
+        :data:`VALUE_CHUNK` calls), with gradients where the prefix trains (``train:
+        expert+state`` / ``vlm``); with ``train: expert`` the features are constants."""
+        calls = next(iter(obs.values())).shape[0]
+        parts = []
+        for start in range(0, calls, VALUE_CHUNK):
+            part = {k: v[start:start + VALUE_CHUNK] for k, v in obs.items()}
+            with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
+                pooled = pool_prefix(*self.prefix_hidden(part))
+            state = [part[OBS_STATE].flatten(1).to(pooled.dtype)] if OBS_STATE in part else []
+            parts.append(torch.cat([pooled, *state], dim=1))
+        return torch.cat(parts)
 
     # --- shapes and action spaces -----------------------------------------------------------------
     @property
@@ -215,6 +241,12 @@ class LeRobotFlowPolicy(Policy):
     def processor_overrides(cls, lerobot_cfg, device: str) -> dict[str, Any]:
         """Overrides of the saved pipelines' steps (by LeRobot's step names)."""
         return {"device_processor": {"device": device}}
+
+
+def pool_prefix(hidden: Tensor, pad_masks: Tensor) -> Tensor:
+    """``[B, D]`` float32: hidden states ``[B, L, D]`` averaged over the valid tokens (``pad_masks`` ``[B, L]``)."""
+    mask = pad_masks.to(torch.float32).unsqueeze(-1)
+    return (hidden.float() * mask).sum(dim=1) / mask.sum(dim=1).clamp(min=1.0)
 
 
 def lerobot_config_dict(lerobot_cfg) -> dict:

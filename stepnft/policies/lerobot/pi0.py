@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import PolicyUnavailable
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, select_rows
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, pool_prefix, select_rows
 
 from lerobot.policies.pi0.modeling_pi0 import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS  # noqa: E402
@@ -52,6 +52,8 @@ class PiPrefix:
     pad_masks: Tensor
     past_key_values: object
     state: Tensor | None = None
+    pooled: Tensor | None = None
+    """``[B, D]`` the prefix's hidden states averaged over its valid tokens (``value_features``)."""
 
 
 def lerobot_entry_points(model: str, policy_class: str) -> tuple[staticmethod, staticmethod]:
@@ -97,17 +99,26 @@ class PI0Adapter(LeRobotFlowPolicy):
         images, img_masks = self.lerobot._preprocess_images(obs)
         return images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK]
 
+    def _run_prefix(self, obs: dict[str, Tensor]) -> tuple[Tensor, object, Tensor]:
+        """The prefix through the VLM: padding mask ``[B, L]``, DynamicCache, last hidden states ``[B, L, D]``."""
+        embs, pad_masks, att_masks = self.model.embed_prefix(*self._prefix_inputs(obs))
+        masks_4d = self.model._prepare_attention_masks_4d(make_att_2d_masks(pad_masks, att_masks))
+        self.model.paligemma_with_expert.paligemma.language_model.config._attn_implementation = "eager"
+        (hidden, _), cache = self.model.paligemma_with_expert.forward(
+            attention_mask=masks_4d, position_ids=torch.cumsum(pad_masks, dim=1) - 1, past_key_values=None,
+            inputs_embeds=[embs, None], use_cache=True)
+        return pad_masks, cache, hidden
+
     def encode(self, obs: dict[str, Tensor]) -> PiPrefix:
         """The model's prefix (images, instruction) run once into its DynamicCache."""
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
-            embs, pad_masks, att_masks = self.model.embed_prefix(*self._prefix_inputs(obs))
-            masks_4d = self.model._prepare_attention_masks_4d(make_att_2d_masks(pad_masks, att_masks))
-            self.model.paligemma_with_expert.paligemma.language_model.config._attn_implementation = "eager"
-            _, cache = self.model.paligemma_with_expert.forward(
-                attention_mask=masks_4d, position_ids=torch.cumsum(pad_masks, dim=1) - 1, past_key_values=None,
-                inputs_embeds=[embs, None], use_cache=True)
+            pad_masks, cache, hidden = self._run_prefix(obs)
         state = self.lerobot.prepare_state(obs) if self.state_in_suffix else None
-        return PiPrefix(pad_masks, cache, state)
+        return PiPrefix(pad_masks, cache, state, pool_prefix(hidden, pad_masks))
+
+    def prefix_hidden(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        pad_masks, _, hidden = self._run_prefix(obs)
+        return hidden, pad_masks
 
     def _fresh_cache(self, cache):
         """A new DynamicCache over the same prefix tensors: the step may extend it, not the prefix."""
@@ -119,7 +130,7 @@ class PI0Adapter(LeRobotFlowPolicy):
         cache = context.past_key_values
         return PiPrefix(select_rows(context.pad_masks, rows),
                         type(cache).from_legacy_cache(select_rows(cache.to_legacy_cache(), rows)),
-                        select_rows(context.state, rows))
+                        select_rows(context.state, rows), pooled=select_rows(context.pooled, rows))
 
     def denoise(self, context: PiPrefix, x_t: Tensor, t: Tensor) -> Tensor:
         cache = self._fresh_cache(context.past_key_values)

@@ -5,7 +5,8 @@ VLM's key/value cache (``fill_kv_cache=True``), once per policy call; ``denoise`
 ``denoise_step(prefix_pad_masks, past_key_values, x_t, timestep)``, which only reads that cache
 (``fill_kv_cache=False`` concatenates new tensors, the cache dict is left as it was), so every
 Flow-SDE step sees the unmodified prefix. Times and velocities need no conversion (see
-``stepnft.policies.lerobot.adapter``).
+``stepnft.policies.lerobot.adapter``). The same VLM pass gives the last layer's hidden states of
+the prefix, which PPO's value head reads pooled (``value_features``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor, nn
 
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, select_rows
+from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, pool_prefix, select_rows
 
 from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
@@ -29,6 +30,10 @@ class SmolVLAPrefix:
     pad_masks: Tensor | None = None
     past_key_values: dict | None = None
     obs: dict[str, Tensor] | None = None
+    pooled: Tensor | None = None
+    """``[B, D]`` the prefix's hidden states averaged over its valid tokens (the pooled part of
+    ``value_features``), from the pass that filled the cache: a caller holding the context
+    reads it without a second pass."""
 
 
 class SmolVLAAdapter(LeRobotFlowPolicy):
@@ -84,23 +89,34 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
         return self.model.embed_prefix(images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK],
                                        state=self.lerobot.prepare_state(obs))
 
+    def _run_prefix(self, obs: dict[str, Tensor]) -> tuple[Tensor, dict, Tensor]:
+        """The prefix through the VLM: padding mask ``[B, L]``, key/value cache, and the last
+        layer's hidden states ``[B, L, D]`` (computed by the same pass)."""
+        embs, pad_masks, att_masks = self._embed_prefix(obs)
+        (hidden, _), past_key_values = self.model.vlm_with_expert.forward(
+            attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
+            past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
+        return pad_masks, past_key_values, hidden
+
     def encode(self, obs: dict[str, Tensor]) -> SmolVLAPrefix:
         """SmolVLA's prefix of processed ``obs`` run into its key/value cache (no gradients unless
         prefix parameters are trained); without the cache, nothing is computed here."""
         if not self.config.prefix_cache:
             return SmolVLAPrefix(obs=obs)
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.prefix_trainable):
-            embs, pad_masks, att_masks = self._embed_prefix(obs)
-            _, past_key_values = self.model.vlm_with_expert.forward(
-                attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
-                past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
-        return SmolVLAPrefix(pad_masks, past_key_values)
+            pad_masks, past_key_values, hidden = self._run_prefix(obs)
+        return SmolVLAPrefix(pad_masks, past_key_values, pooled=pool_prefix(hidden, pad_masks))
+
+    def prefix_hidden(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        pad_masks, _, hidden = self._run_prefix(obs)
+        return hidden, pad_masks
 
     def select_context(self, context: SmolVLAPrefix, rows: Tensor) -> SmolVLAPrefix:
         """The prefix of calls ``rows``: rows of its padding mask and of every layer's cached
         keys and values (without the cache: of the observations)."""
         return replace(context, pad_masks=select_rows(context.pad_masks, rows),
-                       past_key_values=select_rows(context.past_key_values, rows), obs=select_rows(context.obs, rows))
+                       past_key_values=select_rows(context.past_key_values, rows), obs=select_rows(context.obs, rows),
+                       pooled=select_rows(context.pooled, rows))
 
     # --- the action expert, once per denoising step ------------------------------------------------
     def denoise(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
