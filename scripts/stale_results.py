@@ -34,30 +34,29 @@ def git(root: Path, *args: str) -> str:
     return subprocess.run(["git", *args], capture_output=True, text=True, cwd=root, check=False).stdout.strip()
 
 
-def recorded_commit(folder: Path) -> str | None:
-    """The ``commit`` a benchmark wrote into one of the folder's JSON files (without a
-    ``+uncommitted`` suffix), if any."""
+def recorded(folder: Path, key: str) -> list[str]:
+    """The non-empty strings a benchmark wrote under ``key`` into the folder's JSON files."""
+    values = []
     for path in sorted(folder.glob("*.json")):
         try:
-            value = json.loads(path.read_text()).get("commit")
+            value = json.loads(path.read_text()).get(key)
         except (ValueError, AttributeError, OSError):
             continue
         if isinstance(value, str) and value:
-            return value.split("+")[0]
-    return None
+            values.append(value)
+    return values
+
+
+def recorded_commit(folder: Path) -> str | None:
+    """The ``commit`` a benchmark wrote into one of the folder's JSON files (without a
+    ``+uncommitted`` suffix), if any."""
+    commits = recorded(folder, "commit")
+    return commits[0].split("+")[0] if commits else None
 
 
 def recorded_commands(folder: Path) -> list[str]:
     """The ``command`` strings a benchmark wrote into the folder's JSON files."""
-    commands = []
-    for path in sorted(folder.glob("*.json")):
-        try:
-            value = json.loads(path.read_text()).get("command")
-        except (ValueError, AttributeError, OSError):
-            continue
-        if isinstance(value, str) and value:
-            commands.append(value)
-    return commands
+    return recorded(folder, "command")
 
 
 def reads_configs(commands: list[str], changed: list[str]) -> bool:
