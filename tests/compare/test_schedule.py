@@ -67,8 +67,17 @@ def test_an_error_in_one_job_ends_the_others_and_leaves_nothing_running(tmp_path
     assert runner.run(eval_job(tmp_path, "late")) == NOT_RUN  # nothing starts after a stop
 
 
+@pytest.fixture
+def ctrl_c_interrupts():
+    """Ctrl-C as in a terminal: a process a shell starts in the background (`cmd &`, as a CI
+    script may) inherits SIGINT ignored, and Python then raises nothing on it."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_an_interrupt_ends_every_child_and_the_pool(tmp_path, signum):
+def test_an_interrupt_ends_every_child_and_the_pool(tmp_path, signum, ctrl_c_interrupts):
     runner = JobRunner(tmp_path)
     runner.command = SLEEPER
     status = StatusFile(tmp_path / "status.json", 3, log=lambda line: None)
