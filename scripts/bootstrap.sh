@@ -61,7 +61,7 @@ if [ "$LEROBOT" = 1 ]; then
     fi
     .venv-lerobot/bin/python -m pip install -q --upgrade pip
     .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "torch" "torchvision"
-    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[smolvla]" -e ".[test]"
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[smolvla]" "peft" -e ".[test]"
     echo "$want" > "$stamp"
   fi
 fi

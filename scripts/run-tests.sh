@@ -14,4 +14,4 @@ if [ $# -gt 0 ] || [ "${STEPNFT_LEROBOT_TESTS:-1}" = 0 ]; then
 fi
 .venv/bin/python -m pytest -q
 bash scripts/bootstrap.sh --lerobot
-exec .venv-lerobot/bin/python -m pytest -q tests/policies/test_lerobot.py
+exec .venv-lerobot/bin/python -m pytest -q tests/policies/test_lerobot.py tests/policies/test_lerobot_memory.py

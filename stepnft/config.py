@@ -178,7 +178,7 @@ class RayConfig(Settings):
 class TrainConfig(Settings):
     """A run: demonstrations -> few-shot SFT -> online RL (π-StepNFT by default) -> evaluation."""
 
-    resumable: ClassVar[tuple[str, ...]] = ("ray", "device")
+    resumable: ClassVar[tuple[str, ...]] = ("ray", "device", "gradient_checkpointing")
     """What a resumed run may change (``stepnft train --resume RUN --device cuda``): where it
     computes, never what it computes."""
 
@@ -212,6 +212,15 @@ class TrainConfig(Settings):
     cuda or cuda:N (docs/gpu.md). Simulators, observation processing, rollout batches, checkpoints
     and all random generators stay on the CPU, so a CUDA run draws the same noise as a CPU run.
     A resumed run may change it (``--resume RUN --device cuda``)."""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """How the policy computes: fp32, or bf16 (frozen parameters, e.g. a VLA's backbone with
+    train: expert, stored in bfloat16; forward passes under torch.autocast; trained parameters,
+    optimizer state, sampler noise and losses in float32; docs/gpu.md). For GPUs with bfloat16;
+    on a CPU it saves memory, rarely time."""
+    gradient_checkpointing: bool = False
+    """Recompute activations in the backward pass instead of keeping them (a LeRobot VLA: per
+    transformer layer): less memory, about one more forward pass per update step, the same
+    gradients. A resumed run may change it."""
     env: EnvConfig = field(default_factory=EnvConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
     policy: FlowPolicyConfig = field(default_factory=FlowPolicyConfig)

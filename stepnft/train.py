@@ -81,6 +81,7 @@ class TrainingRun:
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, policy: Policy, collector: Collector, tasks: list[str]):
         self.cfg, self.run_dir, self.policy, self.collector, self.tasks = cfg, run_dir, policy, collector, tasks
+        policy.set_precision(cfg.precision).set_gradient_checkpointing(cfg.gradient_checkpointing)
         policy.processor.bind_instructions(collector.venv.instruction_variants, run_dir / "lang_cache")
         self.algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator().manual_seed(cfg.seed))
         self.allocator = TaskAllocator(len(tasks), cfg.task_allocation, cfg.allocation_floor)
@@ -102,7 +103,8 @@ class TrainingRun:
                 episodes = load_or_generate_demos(cfg.demos, cfg.env, sim, log)
             with clock.timed("sft"):
                 policy = sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim,
-                                   device=cfg.device, cache_dir=run_dir / "lang_cache", log=log, episodes=episodes)
+                                   device=cfg.device, cache_dir=run_dir / "lang_cache", log=log, episodes=episodes,
+                                   precision=cfg.precision, gradient_checkpointing=cfg.gradient_checkpointing)
         policy.save_pretrained(run_dir / "sft_policy")
         run = cls(cfg, run_dir, policy, collector, tasks)
         run.progress.time_s = clock.time_s
@@ -286,7 +288,8 @@ def run_sft(cfg: TrainConfig, log: Callable[[str], None] = print) -> dict:
         mark_run(run_dir, "sft")
         save_config(cfg, run_dir / "config.yaml")
         policy = sft_stage(cfg.env, cfg.demos, cfg.policy, cfg.sft, seed=cfg.seed, simulator=sim, init=cfg.init,
-                           device=cfg.device, cache_dir=run_dir / "lang_cache", log=log)
+                           device=cfg.device, cache_dir=run_dir / "lang_cache", log=log, precision=cfg.precision,
+                           gradient_checkpointing=cfg.gradient_checkpointing)
         policy.save_pretrained(run_dir / "policy")
         if cfg.eval.episodes == 0:  # e.g. `stepnft train --init RUN/policy` evaluates it next
             write_atomic(run_dir / "summary.json", json.dumps({"sft": None}, indent=2))
@@ -357,6 +360,7 @@ def _follow(cfg: TrainConfig) -> dict:
         torch.set_num_threads(cfg.num_threads)
         policy, state, generator_state = distributed.broadcast()
         policy = policy.to(cfg.device)  # "cuda": this process's GPU (stepnft.distributed.init)
+        policy.set_precision(cfg.precision).set_gradient_checkpointing(cfg.gradient_checkpointing)
         algo = make_algorithm(cfg.algo, policy, cfg.iterations, torch.Generator())
         algo.load_state_dict(state)
         algo.generator.set_state(generator_state)

@@ -109,10 +109,16 @@ def value_loss(value: Tensor, old_value: Tensor, returns: Tensor, cfg: PPOConfig
     return loss.mean() if weights is None else (loss * weights).mean()
 
 
+def value_features(policy: Policy, obs: dict[str, Tensor]) -> Tensor:
+    """``policy.value_features`` of processed ``obs`` in the policy's precision, as float32."""
+    with policy.autocast():
+        return policy.value_features(obs).float()
+
+
 def call_features(policy: Policy, batch: Batch) -> Tensor:
     """``[C, F]`` detached value features of every policy call (on the policy's device)."""
     with torch.no_grad():
-        return policy.value_features(policy.prepare(batch.obs)).detach()
+        return value_features(policy, policy.prepare(batch.obs)).detach()
 
 
 # --- the algorithm ------------------------------------------------------------------------------
@@ -169,7 +175,7 @@ class PPO(Algorithm):
             # The value head on the encoder's current features, with their gradient (under torchrun
             # every process computes it on the whole minibatch: the same gradient, which DDP's mean keeps).
             obs = self.policy.prepare({k: v[calls] for k, v in batch.obs.items()})
-            loss = critic_loss(calls, self.policy.value_features(obs))
+            loss = critic_loss(calls, value_features(self.policy, obs))
             return cfg.value_coef * loss, {"value_loss": loss.item()}
 
         self.policy.train()

@@ -117,14 +117,15 @@ def fit_processor(policy: Policy, data: dict, instructions: list[str], cache_dir
 
 def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, simulator=None, init: str | None = None,
               device: str = "cpu", cache_dir: str | Path | None = None, log: Callable[[str], None] = print,
-              episodes: Sequence[DemoEpisode] | None = None) -> Policy:
+              episodes: Sequence[DemoEpisode] | None = None, precision: str = "fp32",
+              gradient_checkpointing: bool = False) -> Policy:
     """The SFT stage of a run from its ``EnvConfig``, ``DemoConfig``, policy config and
     :class:`SFTConfig`: demonstrations -> a new policy with its processor fitted -> :func:`sft_train`
     (minibatches and noise drawn from a generator seeded by ``seed``). With ``init``, SFT
     fine-tunes that saved policy instead (e.g. a LeRobot SmolVLA folder). ``simulator``: the
     env's (default: the registered one). ``episodes``: the demonstrations, if already loaded
     (:func:`stepnft.data.demos.load_or_generate_demos`). The policy trains, and is returned, on
-    ``device``."""
+    ``device``, in ``precision`` and with ``gradient_checkpointing`` (:class:`Policy`'s memory settings)."""
     simulator = simulator or get_simulator(env_cfg.name)
     if episodes is None:
         episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator, log)
@@ -132,7 +133,7 @@ def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, 
     data = sft_chunks(episodes, env_cfg, simulator, policy.config.horizon, demos_cfg.successful_only)
     instructions = [simulator.instruction(t) for t in simulator.validate_tasks(env_cfg.tasks)]
     fit_processor(policy, data, instructions, cache_dir, keep_statistics=init is not None)
-    policy.to(device)
+    policy.to(device).set_precision(precision).set_gradient_checkpointing(gradient_checkpointing)
     with tqdm(total=sft_cfg.steps, desc="SFT", leave=False, mininterval=1.0) as bar:
         losses = sft_train(policy, data, sft_cfg, torch.Generator().manual_seed(seed),
                            on_step=lambda s, loss: (bar.update(1), bar.set_postfix(loss=f"{loss:.3f}", refresh=False)))

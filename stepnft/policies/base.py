@@ -17,6 +17,7 @@ chunks live in another space than the env's actions (normalised, padded) overrid
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 from abc import ABC, abstractmethod
@@ -27,6 +28,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from stepnft.devices import to_device
 from stepnft.runs import write_atomic
@@ -48,6 +50,11 @@ POLICY_TYPES: dict[str, str] = {
 def non_finite(tensors: dict[str, Tensor]) -> list[str]:
     """Names of the floating-point tensors holding NaN or infinity."""
     return [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+
+
+PRECISIONS = ("fp32", "bf16")
+"""How a policy computes (``--precision``): ``fp32`` everywhere, or ``bf16``: frozen parameters
+stored in bfloat16 and the forward passes under autocast (:meth:`Policy.set_precision`)."""
 
 
 PROBE_ROWS = 8
@@ -110,11 +117,18 @@ class Policy(nn.Module, ABC):
     layers) costs far more than a denoising step. False keeps the per-step path, one encoding
     per recorded step in minibatches of steps: the MLP's published results depend on its random
     streams and float sums, which this keeps bit for bit."""
+    checkpoints_layers: ClassVar[bool] = False
+    """Whether :meth:`set_gradient_checkpointing` checkpoints inside the model (a VLA, per
+    transformer layer) rather than the encoder and denoiser as two segments."""
 
     def __init__(self, config):
         super().__init__()
         self.config = config
         self.processor = self.make_processor(config)
+        self.precision = "fp32"
+        """``fp32`` or ``bf16`` (:meth:`set_precision`)."""
+        self.gradient_checkpointing = False
+        """Whether gradient passes recompute activations instead of keeping them (:meth:`set_gradient_checkpointing`)."""
 
     # --- what a policy implements -----------------------------------------------------------
     @staticmethod
@@ -145,6 +159,43 @@ class Policy(nn.Module, ABC):
         (``self.processor``), then moved."""
         return to_device(self.processor(raw), self.device)
 
+    # --- memory: precision and gradient checkpointing ---------------------------------------------
+    def set_precision(self, precision: str) -> "Policy":
+        """``bf16``: frozen floating-point parameters (a VLA's vision-language backbone with
+        ``train: expert``) are stored in bfloat16, half their float32 memory, and every forward
+        pass runs under ``torch.autocast(bfloat16)``; trained parameters stay float32 (the
+        optimizer's master copy) and velocities and value features leave the model as float32, so
+        the samplers' noise arithmetic and the losses (energies, their difference) are float32.
+        ``fp32``: the frozen parameters back in float32, no autocast."""
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision={precision!r} is invalid: use {' or '.join(PRECISIONS)}")
+        dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+        for param in self.parameters():
+            if not param.requires_grad and param.is_floating_point():
+                param.data = param.data.to(dtype)
+        self.precision = precision
+        return self
+
+    def autocast(self) -> contextlib.AbstractContextManager:
+        """The context every forward pass of this policy runs in (see :meth:`set_precision`)."""
+        if self.precision == "fp32":
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=torch.bfloat16)
+
+    def set_gradient_checkpointing(self, enabled: bool) -> "Policy":
+        """Recompute activations in the backward pass instead of keeping them from the forward
+        pass: less memory, one more forward pass per update step, the same gradients. Here the
+        encoder and the denoiser are each one checkpointed segment (peak memory: the larger of
+        the two instead of both); a LeRobot VLA checkpoints every transformer layer."""
+        self.gradient_checkpointing = bool(enabled)
+        return self
+
+    def _checkpointed(self, fn, *args):
+        """``fn(*args)``, recomputed in backward when gradient checkpointing is on."""
+        if self.gradient_checkpointing and not self.checkpoints_layers and torch.is_grad_enabled():
+            return checkpoint(fn, *args, use_reentrant=False)
+        return fn(*args)
+
     def select_context(self, context: Any, rows: Tensor) -> Any:
         """The context of rows ``rows`` ``[R]`` (indices into its batch, repeats allowed) of an
         encoded ``context``: how one encoding per policy call serves each of its recorded steps.
@@ -153,16 +204,18 @@ class Policy(nn.Module, ABC):
         return context[rows]
 
     def velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
-        """``v_θ(x_t, t | o)`` for processed ``obs``: the training forward pass."""
-        return self.denoise(self.encode(obs), x_t, t)
+        """``v_θ(x_t, t | o)`` for processed ``obs``: the training forward pass (float32 out)."""
+        return self.forward(obs, x_t, t)
 
     def forward(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor, context_rows: Tensor | None = None) -> Tensor:
         """:meth:`velocity`; with ``context_rows`` ``[R]``, ``obs`` holds one row per policy call
         and step ``i`` (``x_t[i]``, ``t[i]``) reads call ``context_rows[i]``, encoded once for all
         of its steps (the update of a policy that :attr:`shares_prefix_in_update`)."""
-        if context_rows is None:
-            return self.velocity(obs, x_t, t)
-        return self.denoise(self.select_context(self.encode(obs), context_rows), x_t, t)
+        with self.autocast():
+            context = self._checkpointed(self.encode, obs)
+            if context_rows is not None:
+                context = self.select_context(context, context_rows)
+            return self._checkpointed(self.denoise, context, x_t, t).float()
 
     def value_features(self, obs: dict[str, Tensor]) -> Tensor:
         """``[B, F]`` features of processed ``obs`` that a value head reads (PPO's critic), with
@@ -191,9 +244,15 @@ class Policy(nn.Module, ABC):
         """Sample chunks ``[B, H, A]`` for processed ``obs`` (on the policy's device): ODE when
         ``noise_level = 0`` (evaluation), else Flow-SDE; the context is encoded once. The noise
         is drawn from the CPU ``generator`` and moved, whatever the device."""
-        context = self.encode(obs)
+        with self.autocast():
+            context = self.encode(obs)
+
+        def velocity(x: Tensor, t: Tensor) -> Tensor:
+            with self.autocast():
+                return self.denoise(context, x, t).float()
+
         batch = next(iter(obs.values())).shape[0]
-        return sample_chunk(lambda x, t: self.denoise(context, x, t), (batch, *self.chunk_shape),
+        return sample_chunk(velocity, (batch, *self.chunk_shape),
                             num_steps=self.config.num_inference_steps, noise_level=noise_level, generator=generator,
                             stochastic_steps=stochastic_steps, device=self.device,
                             keep_path=keep_path, mean_correction=mean_correction)

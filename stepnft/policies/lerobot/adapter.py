@@ -29,7 +29,9 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar
 
 import torch
+from safetensors.torch import load_file, save, save_file
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from stepnft.policies.base import CONFIG_NAME, Policy, non_finite
 from stepnft.policies.lerobot import require_lerobot
@@ -45,6 +47,8 @@ from stepnft.policies.lerobot.processor import LeRobotProcessor  # noqa: E402
 
 LEROBOT_DIR = "lerobot"
 VLM_DIR = "vlm"
+LORA_NAME = "lora.safetensors"
+"""The LoRA adapters' weights of a policy with ``lora_rank > 0`` (``lerobot/`` then holds the base weights)."""
 VALUE_CHUNK = 32
 """Calls per prefix pass of :meth:`LeRobotFlowPolicy.value_features`: PPO's pass over an
 iteration's calls (hundreds) would otherwise hold the vision encoder's activations for all at once."""
@@ -68,6 +72,33 @@ def select_rows(tree: Any, rows: Tensor) -> Any:
     return tree
 
 
+_CHECKPOINTED: dict[tuple[type, tuple[str, ...]], type] = {}
+
+
+def checkpoint_methods(module: nn.Module, names: tuple[str, ...], enabled: bool = True) -> None:
+    """Make ``module``'s methods ``names`` recompute their activations in the backward pass
+    (``torch.utils.checkpoint``) whenever gradients are on. The module's class is swapped for a
+    subclass that overrides them (``enabled=False`` swaps it back), so the state dict is
+    unchanged and a copy of the module (the EMA copy) is checkpointed alike."""
+    plain = getattr(type(module), "_plain_class", type(module))
+    if not enabled:
+        module.__class__ = plain
+        return
+
+    def wrap(original):
+        def method(self, *args, **kwargs):
+            if torch.is_grad_enabled():
+                return checkpoint(original, self, *args, use_reentrant=False, **kwargs)
+            return original(self, *args, **kwargs)
+        return method
+
+    key = (plain, names)
+    if key not in _CHECKPOINTED:
+        _CHECKPOINTED[key] = type(f"Checkpointed{plain.__name__}", (plain,),
+                                  {name: wrap(getattr(plain, name)) for name in names} | {"_plain_class": plain})
+    module.__class__ = _CHECKPOINTED[key]
+
+
 @contextlib.contextmanager
 def quiet():
     """LeRobot and transformers print progress lines while building; keep stdout for stepnft."""
@@ -82,6 +113,7 @@ class LeRobotFlowPolicy(Policy):
     # The prefix (vision encoder, VLM layers) dominates a velocity's cost: the update encodes it
     # once per policy call and shares it among the call's recorded steps (select_context).
     shares_prefix_in_update = True
+    checkpoints_layers = True
     lerobot_class: ClassVar[Callable[[], type]]
     """The LeRobot policy class (imported on use)."""
     make_pipelines: ClassVar[Callable[[], Callable]]
@@ -113,6 +145,16 @@ class LeRobotFlowPolicy(Policy):
         mask ``[B, L]``: the same pass as :meth:`encode`'s cache."""
         raise NotImplementedError
 
+    def checkpointed_layers(self) -> list[tuple[nn.Module, tuple[str, ...]]]:
+        """The modules and methods that gradient checkpointing recomputes, one transformer layer
+        (or a part of one) per call: ``(module, method names)``."""
+        raise NotImplementedError(f"gradient checkpointing is not implemented for {self.type}")
+
+    def lora_targets(self) -> str:
+        """The regular expression (over module names of ``self.lerobot``) of the VLM's linear
+        layers that ``lora_rank`` puts adapters on."""
+        raise NotImplementedError(f"LoRA is not implemented for {self.type}")
+
     def robot_actions(self, actions: Tensor) -> Tensor:
         """Model-specific output transform before un-normalisation (e.g. SmolVLA's Aloha adaptation)."""
         return actions
@@ -129,7 +171,41 @@ class LeRobotFlowPolicy(Policy):
         if self.config.train == "expert":
             for module in prefix:
                 module.requires_grad_(False)
+        if self.config.lora_rank:
+            self.add_lora()
         return any(p.requires_grad for m in prefix for p in m.parameters())
+
+    def add_lora(self) -> None:
+        """LoRA adapters (peft) of rank ``lora_rank`` on the VLM layers of :meth:`lora_targets`:
+        the VLM backbone (the first of :meth:`prefix_modules`) freezes, and its adapters (``B``
+        starts at 0: the function is unchanged) and the rest of the scope train. Saved apart, in
+        ``lora.safetensors``."""
+        try:
+            from peft import LoraConfig, inject_adapter_in_model
+        except ImportError as err:
+            raise ValueError(f"policy lora_rank={self.config.lora_rank} needs peft: pip install peft "
+                             f"({str(err).splitlines()[0]})") from None
+        # The backbone (the first prefix module) freezes whole; peft freezes everything but its adapters, so
+        # the rest of the scope (the action expert, SmolVLA's state projection) is trained again after it.
+        backbone = {id(p) for p in self.prefix_modules()[0].parameters()}
+        trained = {id(p) for p in self.lerobot.parameters() if p.requires_grad and id(p) not in backbone}
+        with quiet():
+            inject_adapter_in_model(LoraConfig(r=self.config.lora_rank, lora_alpha=self.config.lora_alpha,
+                                               target_modules=self.lora_targets(), lora_dropout=0.0), self.lerobot)
+        for name, param in self.lerobot.named_parameters():
+            param.requires_grad_("lora_" in name or id(param) in trained)
+
+    def lora_state_dict(self) -> dict[str, Tensor]:
+        """The adapters' tensors (``self.lerobot``'s names)."""
+        return {k: v for k, v in self.lerobot.state_dict().items() if "lora_" in k}
+
+    # --- memory ----------------------------------------------------------------------------------
+    def set_gradient_checkpointing(self, enabled: bool) -> "LeRobotFlowPolicy":
+        """Per transformer layer (:meth:`checkpointed_layers`): the attention of every layer and
+        its MLP recompute in backward, so an update keeps one layer's activations at a time."""
+        for module, names in self.checkpointed_layers():
+            checkpoint_methods(module, names, enabled)
+        return super().set_gradient_checkpointing(enabled)
 
     # --- what a value head reads (PPO's critic) ---------------------------------------------------
     def value_features(self, obs: dict[str, Tensor]) -> Tensor:
@@ -181,6 +257,8 @@ class LeRobotFlowPolicy(Policy):
         with quiet():
             self.lerobot.save_pretrained(tmp)
         self.processor.save(tmp)
+        if self.config.lora_rank:
+            split_lora(tmp / "model.safetensors", directory / LORA_NAME)
         shutil.rmtree(directory / LEROBOT_DIR, ignore_errors=True)
         os.replace(tmp, directory / LEROBOT_DIR)
         vlm = Path(self.vlm_name())
@@ -209,6 +287,13 @@ class LeRobotFlowPolicy(Policy):
         local_vlm = directory / VLM_DIR
         policy = cls.build(settings, lerobot_cfg, lerobot_dir, str(local_vlm) if local_vlm.is_dir() else None,
                            map_location)
+        lora = directory / LORA_NAME
+        if settings.lora_rank and lora.is_file():  # without the file: fresh adapters (B = 0, the same model)
+            tensors, own = load_file(str(lora)), policy.lora_state_dict()
+            wrong = sorted(set(own) ^ set(tensors)) or [k for k in own if own[k].shape != tensors[k].shape]
+            if wrong:
+                raise ValueError(f"{lora} does not match the policy's adapters (lora_rank {settings.lora_rank}): {wrong[0]}")
+            policy.lerobot.load_state_dict(tensors, strict=False)
         bad = non_finite(dict(policy.state_dict()))
         if bad:
             raise ValueError(f"non-finite values in {', '.join(bad[:3])}")
@@ -241,6 +326,18 @@ class LeRobotFlowPolicy(Policy):
     def processor_overrides(cls, lerobot_cfg, device: str) -> dict[str, Any]:
         """Overrides of the saved pipelines' steps (by LeRobot's step names)."""
         return {"device_processor": {"device": device}}
+
+
+def split_lora(weights: Path, lora: Path) -> None:
+    """Split a LeRobot ``model.safetensors`` saved with LoRA adapters in place: the adapters'
+    tensors go to ``lora``, the adapted layers' own weights get back their plain names
+    (``q_proj.base_layer.weight`` -> ``q_proj.weight``), so LeRobot loads the folder as its model
+    (the base weights; stepnft adds the adapters on top when it loads the policy folder)."""
+    tensors = load_file(str(weights))
+    adapters = {k: v for k, v in tensors.items() if "lora_" in k}
+    base = {k.replace(".base_layer.", "."): v for k, v in tensors.items() if "lora_" not in k}
+    write_atomic(lora, save(adapters))
+    save_file(base, str(weights), metadata={"format": "pt"})
 
 
 def pool_prefix(hidden: Tensor, pad_masks: Tensor) -> Tensor:

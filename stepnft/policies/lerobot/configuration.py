@@ -37,6 +37,13 @@ class LeRobotPolicyConfig:
     the prefix: LeRobot's default SmolVLA fine-tuning set; the prefix then carries gradients) or
     ``vlm`` (also the VLM's language layers, LeRobot's train_expert_only=False; the vision
     encoder stays frozen)."""
+    lora_rank: int = 0
+    """With ``train: vlm``: LoRA adapters of this rank (peft) on the attention projections of the
+    VLM's language layers, the VLM itself frozen (the action expert, and SmolVLA's state
+    projection, still train whole); 0: the VLM's language layers train whole. The adapters are
+    saved in ``lora.safetensors``, ``lerobot/`` keeps the base weights."""
+    lora_alpha: int = 16
+    """LoRA's scale numerator: the adapters' update is scaled by ``lora_alpha / lora_rank``."""
     n_exec: int = 0
     """Actions of a chunk executed before the policy is called again (0: LeRobot's n_action_steps)."""
     num_inference_steps: int = 0
@@ -60,6 +67,11 @@ class LeRobotPolicyConfig:
     def __post_init__(self) -> None:
         if self.train not in TRAIN_SCOPES:
             raise ValueError(f"policy train={self.train!r} is invalid: choose one of {', '.join(TRAIN_SCOPES)}")
+        if self.lora_rank < 0 or self.lora_alpha <= 0:
+            raise ValueError("policy lora_rank must be >= 0 and lora_alpha > 0")
+        if self.lora_rank and self.train != "vlm":
+            raise ValueError(f"policy lora_rank={self.lora_rank} adapts the VLM's layers: it needs train=vlm "
+                             f"(train={self.train!r} keeps them frozen)")
         if min(self.n_exec, self.num_inference_steps, self.state_dim, self.action_dim, self.horizon) < 0:
             raise ValueError("policy n_exec, num_inference_steps, state_dim, action_dim and horizon must be >= 0")
         if self.horizon and self.n_exec > self.horizon:

@@ -95,6 +95,16 @@ class PI0Adapter(LeRobotFlowPolicy):
         with_expert.freeze_vision_encoder = self.lerobot.config.freeze_vision_encoder
         with_expert._set_requires_grad()
 
+    def set_gradient_checkpointing(self, enabled: bool) -> "PI0Adapter":
+        """LeRobot's own per-layer checkpointing of π0 (its language model, vision tower and
+        expert; active while the model is in training mode, as in the update)."""
+        if enabled:
+            self.model.gradient_checkpointing_enable()
+        else:
+            self.model.gradient_checkpointing_disable()
+        self.gradient_checkpointing = bool(enabled)
+        return self
+
     def _prefix_inputs(self, obs: dict[str, Tensor]) -> tuple:
         images, img_masks = self.lerobot._preprocess_images(obs)
         return images, img_masks, obs[OBS_LANGUAGE_TOKENS], obs[OBS_LANGUAGE_ATTENTION_MASK]

@@ -59,6 +59,18 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
         vlm_with_expert.set_requires_grad()
         self.model.set_requires_grad()
 
+    def checkpointed_layers(self) -> list[tuple[nn.Module, tuple[str, ...]]]:
+        """Every layer's attention (SmolVLA's own layer loop calls these two methods of
+        ``vlm_with_expert``, VLM and expert together) and every language and expert layer's MLP."""
+        with_expert = self.model.vlm_with_expert
+        layers = [*with_expert.get_vlm_model().text_model.layers, *with_expert.lm_expert.layers]
+        return [(with_expert, ("forward_attn_layer", "forward_cross_attn_layer")),
+                *((layer.mlp, ("forward",)) for layer in layers)]
+
+    def lora_targets(self) -> str:
+        """The attention projections (q, k, v, o) of the VLM's language layers."""
+        return r".*vlm_with_expert\.vlm\..*text_model\.layers\.\d+\.self_attn\.(q|k|v|o)_proj"
+
     def robot_actions(self, actions: Tensor) -> Tensor:
         return self.lerobot._pi_aloha_encode_actions(actions) if self.lerobot.config.adapt_to_pi_aloha else actions
 

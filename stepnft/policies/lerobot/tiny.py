@@ -110,6 +110,9 @@ class NewSmolVLA:
     """Side of the square camera images the env renders."""
     train: Literal["expert", "expert+state", "vlm"] = "expert"
     """Trained parameters (see stepnft.policies.lerobot.configuration)."""
+    lora_rank: int = 0
+    """With --train vlm: LoRA adapters of this rank on the VLM's language layers instead of
+    training them whole (needs peft); 0: none."""
     seed: int = 0
     """Seed of the random initialisation."""
 
@@ -137,7 +140,8 @@ def build_smolvla(spec: NewSmolVLA, vlm_dir: str | Path):
         resize_imgs_with_padding=(side, side), input_features=features,
         output_features={"action": PolicyFeature(FeatureType.ACTION, (spec.action_dim,))}, device="cpu")
     torch.manual_seed(spec.seed)
-    return SmolVLAAdapter.build(LeRobotPolicyConfig(train=spec.train), lerobot_cfg, None, None)
+    return SmolVLAAdapter.build(LeRobotPolicyConfig(train=spec.train, lora_rank=spec.lora_rank), lerobot_cfg,
+                                None, None)
 
 
 def new_smolvla(spec: NewSmolVLA):
