@@ -1,0 +1,253 @@
+"""What an update costs at SmolVLA's real size: seconds per update sample and peak memory for
+π-StepNFT, PPO (Flow-SDE, its value head on the VLA's pooled prefix) and GRPO at an equal batch,
+for each precision (and with gradient checkpointing), plus policy calls/s with and without the
+prefix cache.
+
+The model is the full-size SmolVLA architecture (SmolVLM2-500M backbone, 16 language layers,
+~450 M parameters) built offline from a local configuration with random weights
+(``stepnft.policies.lerobot.tiny``); ``--size tiny`` is a quick check. Every algorithm gets the
+same batch of policy calls (one episode per call; GRPO's groups of 2 share a reset seed) and does
+one optimizer step over all of it (``minibatch_size`` = every recorded step): π-StepNFT records
+one denoising step per call, PPO and GRPO all K (their likelihood sums over the chain), so an
+"update sample" is a policy call for all three. ``train: expert`` (the action expert trains, the
+VLM is frozen), the prefix cache on, the prefix shared by a call's recorded steps.
+
+Each configuration runs in its own process, so its peak memory is its own: on a CPU the peak
+resident set size (VmHWM) during the timed updates, less the resident size before them (the
+model, its EMA copy and the batch), and in total; on a GPU ``torch.cuda.max_memory_allocated``.
+Times are wall-clock and CPU seconds (CPU time is steadier where other jobs share the machine).
+
+    .venv-lerobot/bin/python benchmarks/vla_compute.py --out benchmarks/results/vla_compute
+    .venv-lerobot/bin/python benchmarks/vla_compute.py --size tiny --reps 1        # a quick check
+    python benchmarks/vla_compute.py --device cuda --calls 16 --out OUT            # on a GPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+import provenance
+
+ALGOS = ("stepnft", "ppo", "grpo")
+CASES = [(algo, "fp32", False) for algo in ALGOS] + [(algo, "bf16", False) for algo in ALGOS] + \
+        [(algo, "bf16", True) for algo in ALGOS]
+"""(algorithm, precision, gradient checkpointing) of the cost table, in its row order."""
+CHUNK = {"tiny": (4, 4), "smolvla": (50, 10)}
+"""Chunk size and denoising steps K per size (SmolVLA's defaults at full size)."""
+
+
+def raw_obs(calls: int, side: int, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    return {"state": torch.randn(calls, 39, generator=g), "task": torch.zeros(calls, dtype=torch.int64),
+            "image": torch.randint(0, 256, (calls, 1, 3, side, side), dtype=torch.uint8, generator=g)}
+
+
+def rss_mb(key: str = "VmRSS") -> float:
+    """This process's resident set size (``VmRSS``) or its peak since the last reset (``VmHWM``), in MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def reset_peak() -> None:
+    """Reset VmHWM to the current resident size (Linux: ``clear_refs`` 5)."""
+    Path("/proc/self/clear_refs").write_text("5")
+
+
+def build(size: str, device: str, tmp: Path):
+    from stepnft.policies.lerobot.tiny import SIZES, NewSmolVLA, build_smolvla
+
+    chunk, steps = CHUNK[size]
+    side = SIZES[size]["vision"]["image_size"]
+    policy = build_smolvla(NewSmolVLA(out="", size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
+                                      image_size=side), tmp / size)
+    policy.processor.bind_instructions(["open the drawer"])
+    return policy.to(device), side
+
+
+def make_batch(policy, algo: str, calls: int, side: int):
+    """``calls`` Flow-SDE policy calls of ``policy`` as one iteration's batch: one episode per
+    call, half successful, groups of 2 sharing a reset seed; every denoising step recorded for
+    PPO and GRPO, one per call for π-StepNFT."""
+    from stepnft.batch import Batch
+    from stepnft.devices import to_device
+
+    raw = raw_obs(calls, side)
+    with torch.no_grad():
+        sample = to_device(policy.sample(policy.prepare(raw), noise_level=0.5, generator=torch.Generator().manual_seed(1),
+                                         keep_path=True), "cpu")
+    h = policy.chunk_shape[0]
+    return Batch(episode_success=torch.arange(calls) % 2 == 0, episode_task=torch.zeros(calls, dtype=torch.int64),
+                 episode_length=torch.full((calls,), h), episode_seed=torch.arange(calls) // 2, obs=raw,
+                 actions=sample.actions, mask=torch.ones(calls, h, dtype=torch.bool),
+                 reward=(torch.arange(calls) % 2 == 0).float(), done=torch.ones(calls, dtype=torch.bool),
+                 episode=torch.arange(calls), **sample.recorded_steps(every_step=algo != "stepnft"))
+
+
+def algo_config(algo: str, steps: int):
+    from stepnft.algos.grpo import GRPOConfig
+    from stepnft.algos.ppo import PPOConfig
+    from stepnft.algos.stepnft import StepNFTConfig
+
+    common = dict(minibatch_size=steps, update_epochs=1)
+    if algo == "stepnft":
+        return StepNFTConfig(**common)
+    if algo == "ppo":
+        return PPOConfig(noise_level=0.5, target_kl=None, **common)
+    return GRPOConfig(noise_level=0.5, group_size=2, target_kl=None, **common)
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def one(args) -> dict:
+    """One row of the table (run in its own process)."""
+    from stepnft.algos.base import make_algorithm
+
+    torch.set_num_threads(args.threads)
+    cuda = args.device.startswith("cuda")
+    with tempfile.TemporaryDirectory() as tmp:
+        policy, side = build(args.size, args.device, Path(tmp))
+    policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
+    out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
+           "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
+           "trained_M": sum(p.numel() for p in policy.parameters() if p.requires_grad) / 1e6,
+           "weights_MB": sum(p.nbytes for p in policy.parameters()) / 2**20}
+    batch = make_batch(policy, args.algo, args.calls, side)
+    algo = make_algorithm(algo_config(args.algo, batch.num_steps), policy, 1, torch.Generator().manual_seed(0))
+    out["recorded_steps"] = batch.num_steps
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated() / 2**20
+    else:
+        base = rss_mb()
+        reset_peak()
+    wall = cpu = 0.0
+    for rep in range(args.reps + 1):  # the first is a warm-up (PPO builds its value head there)
+        sync(args.device)
+        start, start_cpu = time.perf_counter(), time.process_time()
+        metrics = algo.update(batch)
+        sync(args.device)
+        if rep:
+            wall += time.perf_counter() - start
+            cpu += time.process_time() - start_cpu
+    peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else rss_mb("VmHWM")
+    out |= {"update_s_per_sample": wall / args.reps / args.calls, "update_cpu_s_per_sample": cpu / args.reps / args.calls,
+            "peak_MB": peak, "before_update_MB": base, "update_peak_MB": peak - base,
+            "memory": "cuda max_memory_allocated" if cuda else "VmHWM (peak resident set)",
+            "update_steps": metrics.get("losses/update_steps"), "skipped_nonfinite": metrics.get("losses/skipped_nonfinite")}
+    if args.algo == "stepnft" and not args.checkpointing:  # sampling does not depend on the algorithm
+        policy.eval()
+        for cache in (True, False):
+            policy.config.prefix_cache = cache
+            raw = raw_obs(args.sample_calls, side, seed=2)
+            obs = policy.prepare(raw)
+            policy.sample(obs, noise_level=0.5, generator=torch.Generator().manual_seed(0))
+            sync(args.device)
+            start = time.perf_counter()
+            policy.sample(obs, noise_level=0.5, generator=torch.Generator().manual_seed(0))
+            sync(args.device)
+            out[f"calls_per_s_{'cache' if cache else 'no_cache'}"] = args.sample_calls / (time.perf_counter() - start)
+        policy.config.prefix_cache = True
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| algorithm | precision | checkpointing | s / update sample (wall) | CPU s / sample | peak memory of the "
+             "update (MB) | peak in all (MB) | weights (MB) | calls/s cache | calls/s no cache |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['algo']} | {r['precision']} | {r['gradient_checkpointing']} | error: {r['error']} |"
+                         " | | | | | |")
+            continue
+        calls = [f"{r[k]:.2f}" if k in r else "" for k in ("calls_per_s_cache", "calls_per_s_no_cache")]
+        lines.append(f"| {r['algo']} | {r['precision']} | {'on' if r['gradient_checkpointing'] else 'off'} | "
+                     f"{r['update_s_per_sample']:.3f} | {r['update_cpu_s_per_sample']:.3f} | {r['update_peak_MB']:.0f} | "
+                     f"{r['peak_MB']:.0f} | {r['weights_MB']:.0f} | {calls[0]} | {calls[1]} |")
+    return "\n".join(lines)
+
+
+def ratios(rows: list[dict]) -> dict:
+    """π-StepNFT against PPO per precision: throughput (PPO's seconds per sample / π-StepNFT's)
+    and peak update memory (π-StepNFT's / PPO's); bf16 against fp32: the weights' memory."""
+    by = {(r["algo"], r["precision"], r["gradient_checkpointing"]): r for r in rows if "error" not in r}
+    out = {}
+    for precision in ("fp32", "bf16"):
+        s, p = by.get(("stepnft", precision, False)), by.get(("ppo", precision, False))
+        if s and p:
+            out[f"stepnft_vs_ppo_throughput_{precision}"] = p["update_s_per_sample"] / s["update_s_per_sample"]
+            out[f"stepnft_vs_ppo_throughput_cpu_{precision}"] = p["update_cpu_s_per_sample"] / s["update_cpu_s_per_sample"]
+            out[f"stepnft_vs_ppo_update_memory_{precision}"] = s["update_peak_MB"] / p["update_peak_MB"]
+    if ("stepnft", "fp32", False) in by and ("stepnft", "bf16", False) in by:
+        out["bf16_vs_fp32_weights"] = by[("stepnft", "bf16", False)]["weights_MB"] / by[("stepnft", "fp32", False)]["weights_MB"]
+    for algo in ALGOS:
+        if (algo, "bf16", True) in by and (algo, "bf16", False) in by:
+            out[f"checkpointing_vs_not_update_memory_{algo}"] = (by[(algo, "bf16", True)]["update_peak_MB"]
+                                                                 / by[(algo, "bf16", False)]["update_peak_MB"])
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", choices=list(CHUNK), default="smolvla")
+    parser.add_argument("--calls", type=int, default=2, help="policy calls in the update batch (equal for all algorithms)")
+    parser.add_argument("--sample-calls", type=int, default=1, help="batch of the timed policy calls")
+    parser.add_argument("--reps", type=int, default=1, help="timed updates after one warm-up")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", default=None, help="folder for compute.json and compute.md")
+    parser.add_argument("--one", nargs=3, metavar=("ALGO", "PRECISION", "CHECKPOINTING"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        args.algo, args.precision, args.checkpointing = args.one[0], args.one[1], args.one[2] == "1"
+        print("RESULT " + json.dumps(one(args)), flush=True)
+        return
+    import stepnft
+
+    if Path(stepnft.__file__).resolve().parents[1] != provenance.ROOT:
+        parser.error(f"stepnft is imported from {Path(stepnft.__file__).parent}, not from this checkout: "
+                     f"run with PYTHONPATH={provenance.ROOT}")
+    results = {"commit": provenance.commit(), "command": provenance.command(), "size": args.size, "calls": args.calls,
+               "device": args.device, "torch": torch.__version__, "threads": args.threads,
+               "machine": platform.processor() or platform.machine(), "load_average_at_start": list(os.getloadavg()),
+               "rows": []}
+    for algo, precision, checkpointing in CASES:
+        command = [sys.executable, __file__, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
+                   "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
+                   "--one", algo, precision, "1" if checkpointing else "0"]
+        done = subprocess.run(command, capture_output=True, text=True)
+        lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+        row = json.loads(lines[-1][7:]) if lines else {
+            "algo": algo, "precision": precision, "gradient_checkpointing": checkpointing,
+            "error": (done.stderr.strip().splitlines() or ["no output"])[-1][:200]}
+        results["rows"].append(row)
+        print(json.dumps(row), flush=True)
+    results["ratios"] = ratios(results["rows"])
+    results["load_average_at_end"] = list(os.getloadavg())  # the machine may be shared with other jobs
+    print(table(results["rows"]))
+    print(json.dumps(results["ratios"], indent=1))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "compute.json").write_text(json.dumps(results, indent=2))
+        (out / "compute.md").write_text(f"`{results['command']}` (commit {results['commit']}, {args.device}, "
+                                        f"{args.threads} threads, {args.calls} policy calls per update)\n\n"
+                                        + table(results["rows"]) + "\n")
+
+
+if __name__ == "__main__":
+    main()
