@@ -10,8 +10,12 @@
 # embeddings, so no sentence encoder is needed). Logs and results go to $OUT (default
 # /tmp/gpu_check): setup.log, core_tests.log, cuda_tests.log, compute.log, compute/ and steps.txt.
 # Parts, in priority order: (a) the core unit tests on the machine's CPU (GPU hidden: a check of
-# its python and torch), (b) the CUDA tests of tests/test_devices.py, (c) benchmarks/compute.py
-# on cpu and cuda.
+# its python and torch), (b) the CUDA tests of tests/test_devices.py and tests/policies/test_memory.py
+# (bf16 on CUDA), (c) benchmarks/compute.py on cpu and cuda, (d) the cost table of a full-size
+# SmolVLA on cuda (benchmarks/vla_compute.py; needs LeRobot: its wheel and the pure-Python ones
+# it needs beyond the machine's torch and transformers in CARRY/whl, else the step says what is
+# missing), (e) MetaWorld camera rollouts on 16 worker processes rendering through EGL
+# (benchmarks/render_throughput.py). About 8 minutes in all; each step has its own limit.
 set +e
 CARRY=${1:-.gpucarry}
 OUT=${OUT:-/tmp/gpu_check}
@@ -48,10 +52,16 @@ export CARRY PY SITE
 step setup 60 bash -c setup
 # (a) on the machine's CPU: the GPU hidden, so the CUDA tests skip and --device cuda is refused.
 step core_tests 120 env CUDA_VISIBLE_DEVICES= $PY -m pytest -q -p no:cacheprovider $XDIST $CORE_TESTS
-# (b) on the GPU: SFT, rollout, updates and checkpoints against the CPU, and a bandit run.
-step cuda_tests 100 $PY -m pytest -q -p no:cacheprovider -rs tests/test_devices.py
+# (b) on the GPU: SFT, rollout, updates and checkpoints against the CPU, a bandit run, bf16 under autocast.
+step cuda_tests 100 $PY -m pytest -q -p no:cacheprovider -rs tests/test_devices.py tests/policies/test_memory.py
 # (c) throughput of the quickstart policy (MetaWorld tasks, instructions from the cache) on cpu and cuda.
 step compute 150 $PY benchmarks/compute.py --device cpu,cuda --algos stepnft,ppo,grpo --calls 1000 --episodes 20 \
     --repeats 3 --rollout-episodes 40 --sample-sizes 1,8,64,512,4096 --lang-cache "$CARRY/lang_cache" --out "$OUT/compute"
 rm -f "$OUT/compute/compute.md"  # the table is in compute.log (8 files come back)
+# (d) a full-size SmolVLA (random weights, offline configuration): update cost per algorithm and precision.
+step vla_compute 200 $PY benchmarks/vla_compute.py --device cuda --calls 8 --reps 2 --sample-calls 8 --threads 4 \
+    --out "$OUT/vla_compute"
+# (e) the camera loop's simulator side on 16 processes, rendering through the GPU's EGL.
+step render 120 env MUJOCO_GL=egl $PY benchmarks/render_throughput.py --workers 16 --envs-per-task 8 --seconds 20 \
+    --out "$OUT/render"
 cat "$OUT/steps.txt"
