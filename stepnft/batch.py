@@ -101,8 +101,11 @@ class Batch:
 
     def steps_obs(self, idx: Tensor) -> dict[str, Tensor]:
         """The observations of recorded steps ``idx`` (gathered from their calls)."""
-        rows = self.call[idx]
-        return {k: v[rows] for k, v in self.obs.items()}
+        return self.calls_obs(self.call[idx])
+
+    def calls_obs(self, calls: Tensor) -> dict[str, Tensor]:
+        """The observations of policy calls ``calls``."""
+        return {k: v[calls] for k, v in self.obs.items()}
 
     # --- building -------------------------------------------------------------------------
     def validate(self) -> None:

@@ -184,7 +184,7 @@ def step_velocity(learner: nn.Module, policy: Policy, batch: Batch, rows: Tensor
     if not (policy.shares_prefix_in_update if share_prefix is None else share_prefix):
         return learner(policy.prepare(batch.steps_obs(rows)), x_t, t)
     calls, context_rows = batch.call[rows].unique(return_inverse=True)
-    obs = policy.prepare({k: v[calls] for k, v in batch.obs.items()})
+    obs = policy.prepare(batch.calls_obs(calls))
     return learner(obs, x_t, t, context_rows=context_rows.to(policy.device))
 
 

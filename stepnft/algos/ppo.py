@@ -109,6 +109,10 @@ def value_loss(value: Tensor, old_value: Tensor, returns: Tensor, cfg: PPOConfig
     return loss.mean() if weights is None else (loss * weights).mean()
 
 
+CRITIC_ADAM = {"betas": (0.9, 0.999), "eps": 1e-8}
+"""The value head's Adam settings (torch's defaults), its own optimizer or a group of the policy's."""
+
+
 def value_features(policy: Policy, obs: dict[str, Tensor]) -> Tensor:
     """``policy.value_features`` of processed ``obs`` in the policy's precision, as float32."""
     with policy.autocast():
@@ -140,9 +144,9 @@ class PPO(Algorithm):
             # updated by Adam's rule at critic_lr as the separate critic is (AdamW without weight decay).
             self.optimizer = make_optimizer(self.policy.parameters(), self.cfg)
             self.optimizer.add_param_group({"params": list(self.critic.parameters()), "lr": self.cfg.critic_lr,
-                                            "betas": (0.9, 0.999), "eps": 1e-8, "weight_decay": 0.0})
+                                            **CRITIC_ADAM, "weight_decay": 0.0})
             return
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.critic_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.critic_lr, **CRITIC_ADAM)
         self.critic_guard = NonFiniteGuard(self.cfg)
 
     def update(self, batch: Batch) -> dict[str, float]:
@@ -174,7 +178,7 @@ class PPO(Algorithm):
         def shared_critic_loss(calls: Tensor) -> tuple[Tensor, dict[str, float]]:
             # The value head on the encoder's current features, with their gradient (under torchrun
             # every process computes it on the whole minibatch: the same gradient, which DDP's mean keeps).
-            obs = self.policy.prepare({k: v[calls] for k, v in batch.obs.items()})
+            obs = self.policy.prepare(batch.calls_obs(calls))
             loss = critic_loss(calls, value_features(self.policy, obs))
             return cfg.value_coef * loss, {"value_loss": loss.item()}
 

@@ -180,7 +180,7 @@ def merge_parts(parts: list[Batch], rows: list[np.ndarray], keep: Tensor | None 
     steps = kept[torch.argsort(new_call[batch.call[kept]], stable=True)]
     return Batch(
         **{k: getattr(batch, k)[episodes] for k in EPISODE_KEYS},
-        obs={k: v[calls] for k, v in batch.obs.items()},
+        obs=batch.calls_obs(calls),
         **{k: getattr(batch, k)[calls] for k in CALL_KEYS if k != "episode"}, episode=new_episode[batch.episode[calls]],
         **{k: getattr(batch, k)[steps] for k in STEP_KEYS if k != "call"}, call=new_call[batch.call[steps]],
     )
