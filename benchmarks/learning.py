@@ -6,7 +6,8 @@ few-shot SFT -> RL under the config's budget -> ODE evaluation of ``policy/`` an
 ``learning.md`` (per task and seed: SFT -> final [95 % CI], the best policy, tasks that ended
 below their start), ``learning.json`` and ``learning.png`` (validation success against env steps,
 the average and every task, one line per seed). A seed whose run folder already holds
-``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end.
+``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end;
+one that was interrupted resumes from its last checkpoint.
 
     .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
     .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
@@ -164,8 +165,9 @@ def main(argv=None) -> dict:
         done = Path(cfg.run_dir) / "summary.json"
         if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
             start = time.perf_counter()
-            summary = train(cfg)
-            summary["wall_clock_s"] = time.perf_counter() - start
+            resume = (Path(cfg.run_dir) / "checkpoints" / "LATEST").is_file()  # interrupted: go on from there
+            summary = train(cfg, resume=resume)
+            summary["wall_clock_s_this_session" if resume else "wall_clock_s"] = time.perf_counter() - start
             summary["commit"] = commit()  # the code this seed ran on
             done.write_text(json.dumps(summary, indent=2))
         summary = json.loads(done.read_text())
