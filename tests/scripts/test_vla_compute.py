@@ -1,0 +1,49 @@
+"""benchmarks/vla_compute.py: every algorithm gets the same policy calls, and the ratios the
+issue's targets read are the right way round."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def vla_compute():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        spec = importlib.util.spec_from_file_location("vla_compute_benchmark", ROOT / "benchmarks" / "vla_compute.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+
+def row(algo, precision, checkpointing, seconds, memory, weights=100.0):
+    return {"algo": algo, "precision": precision, "gradient_checkpointing": checkpointing,
+            "update_s_per_sample": seconds, "update_cpu_s_per_sample": 2 * seconds, "update_peak_MB": memory,
+            "peak_MB": memory + 1000, "weights_MB": weights}
+
+
+def test_every_algorithm_is_measured_in_every_precision(vla_compute):
+    cases = set(vla_compute.CASES)
+    assert {(a, p, False) for a in vla_compute.ALGOS for p in ("fp32", "bf16")} <= cases
+    assert {(a, "bf16", True) for a in vla_compute.ALGOS} <= cases
+
+
+def test_ratios_read_the_targets_the_right_way_round(vla_compute):
+    rows = [row("stepnft", "fp32", False, 1.0, 400.0, weights=1800.0), row("ppo", "fp32", False, 3.0, 1000.0),
+            row("stepnft", "bf16", False, 0.5, 300.0, weights=1100.0), row("ppo", "bf16", False, 2.0, 600.0),
+            row("stepnft", "bf16", True, 0.7, 150.0), {"algo": "grpo", "precision": "fp32",
+                                                       "gradient_checkpointing": False, "error": "x"}]
+    r = vla_compute.ratios(rows)
+    assert r["stepnft_vs_ppo_throughput_fp32"] == pytest.approx(3.0)  # PPO's seconds / π-StepNFT's
+    assert r["stepnft_vs_ppo_update_memory_fp32"] == pytest.approx(0.4)  # π-StepNFT's memory / PPO's
+    assert r["stepnft_vs_ppo_throughput_bf16"] == pytest.approx(4.0)
+    assert r["bf16_vs_fp32_weights"] == pytest.approx(1100 / 1800)
+    assert r["checkpointing_vs_not_update_memory_stepnft"] == pytest.approx(0.5)
+    table = vla_compute.table(rows)
+    assert table.count("\n") == len(rows) + 1 and "error: x" in table
