@@ -16,6 +16,8 @@ Each configuration runs in its own process, so its peak memory is its own: on a 
 resident set size (VmHWM) during the timed updates, less the resident size before them (the
 model, its EMA copy and the batch), and in total; on a GPU ``torch.cuda.max_memory_allocated``.
 Times are wall-clock and CPU seconds (CPU time is steadier where other jobs share the machine).
+With ``--out`` the table is written after every row, and rerunning the command keeps the rows it
+has (delete the folder to measure again).
 
     .venv-lerobot/bin/python benchmarks/vla_compute.py --out benchmarks/results/vla_compute
     .venv-lerobot/bin/python benchmarks/vla_compute.py --size tiny --reps 1        # a quick check
@@ -221,11 +223,20 @@ def main() -> None:
     if Path(stepnft.__file__).resolve().parents[1] != provenance.ROOT:
         parser.error(f"stepnft is imported from {Path(stepnft.__file__).parent}, not from this checkout: "
                      f"run with PYTHONPATH={provenance.ROOT}")
+    out = Path(args.out) if args.out else None
+    done_rows = []
+    if out is not None and (out / "compute.json").is_file():  # an interrupted table: keep its rows
+        done_rows = [r for r in json.loads((out / "compute.json").read_text())["rows"] if "error" not in r]
     results = {"commit": provenance.commit(), "command": provenance.command(), "size": args.size, "calls": args.calls,
                "device": args.device, "torch": torch.__version__, "threads": args.threads,
                "machine": platform.processor() or platform.machine(), "load_average_at_start": list(os.getloadavg()),
                "rows": []}
     for algo, precision, checkpointing in CASES:
+        kept = [r for r in done_rows if (r["algo"], r["precision"], r["gradient_checkpointing"]) ==
+                (algo, precision, checkpointing)]
+        if kept:
+            results["rows"].append(kept[0])
+            continue
         command = [sys.executable, __file__, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
                    "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
                    "--one", algo, precision, "1" if checkpointing else "0"]
@@ -234,20 +245,26 @@ def main() -> None:
         row = json.loads(lines[-1][7:]) if lines else {
             "algo": algo, "precision": precision, "gradient_checkpointing": checkpointing,
             "error": (done.stderr.strip().splitlines() or ["no output"])[-1][:200]}
+        row["commit"] = results["commit"]  # a resumed table may mix commits: each row says its own
         results["rows"].append(row)
         print(json.dumps(row), flush=True)
+        if out is not None:
+            write(out, results, args)
     results["ratios"] = ratios(results["rows"])
     results["load_average_at_end"] = list(os.getloadavg())  # the machine may be shared with other jobs
     print(table(results["rows"]))
     print(json.dumps(results["ratios"], indent=1))
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "compute.json").write_text(json.dumps(results, indent=2))
-        (out / "compute.md").write_text(f"`{results['command']}` (commit {results['commit']}, {args.device}, "
-                                        f"{args.threads} threads, {args.calls} policy calls per update)\n\n"
-                                        + table(results["rows"]) + "\n")
+    if out is not None:
+        write(out, results, args)
 
+
+def write(out: Path, results: dict, args) -> None:
+    """``compute.json`` and ``compute.md`` (the rows so far: a rerun of the command keeps them)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compute.json").write_text(json.dumps(results, indent=2))
+    (out / "compute.md").write_text(f"`{results['command']}` (commit {results['commit']}, {args.device}, "
+                                    f"{args.threads} threads, {args.calls} policy calls per update)\n\n"
+                                    + table(results["rows"]) + "\n")
 
 if __name__ == "__main__":
     main()
