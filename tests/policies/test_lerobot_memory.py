@@ -125,8 +125,26 @@ def test_lora_adapters_train_instead_of_the_vlm_layers_and_save_apart(tiny_folde
     loaded = load_policy(folder)
     loaded.processor.bind_instructions(policy.processor.instructions)
     policy.eval()
-    for a, b in ((policy(obs, x, t, context_rows=rows), loaded(obs, x, t, context_rows=rows)),):
-        torch.testing.assert_close(b, a, rtol=0, atol=0)
+    with torch.no_grad():
+        a, b = policy(obs, x, t, context_rows=rows), loaded(obs, x, t, context_rows=rows)
+    torch.testing.assert_close(b, a, rtol=0, atol=0)
+    # merged into a plain folder: the same velocities, and LeRobot's own folder is the fine-tuned model
+    from stepnft.policies.lerobot.__main__ import main
+
+    assert main(["merge", "--policy", str(folder), "--out", str(tmp_path / "merged")]) == 0
+    merged = load_policy(tmp_path / "merged")
+    assert merged.config.lora_rank == 0 and not (tmp_path / "merged" / "lora.safetensors").exists()
+    assert not any("lora_" in n for n, _ in merged.named_parameters())
+    base = load_policy(folder / "lerobot")  # before merging, LeRobot's folder holds the base weights
+    base.processor.bind_instructions(policy.processor.instructions)
+    with torch.no_grad():
+        assert not torch.allclose(base.eval()(obs, x, t, context_rows=rows), a, rtol=1e-4, atol=1e-5)
+    plain = load_policy(tmp_path / "merged" / "lerobot")  # the LeRobot folder alone, as LeRobot saved it
+    for other in (merged, plain):
+        other.processor.bind_instructions(policy.processor.instructions)
+        with torch.no_grad():
+            torch.testing.assert_close(other.eval()(obs, x, t, context_rows=rows), a, rtol=1e-4, atol=1e-5)
+    assert main(["merge", "--policy", str(tmp_path / "merged"), "--out", str(tmp_path / "again")]) == 2
     (folder / "config.json").write_text(json.dumps(json.loads((folder / "config.json").read_text()) | {"lora_rank": 3}))
     with pytest.raises(ValueError, match="does not match the policy's adapters"):
         load_policy(folder)

@@ -20,6 +20,7 @@ run once per call into the VLM's key/value cache), its denoising step against th
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
 import io
 import json
@@ -198,6 +199,22 @@ class LeRobotFlowPolicy(Policy):
     def lora_state_dict(self) -> dict[str, Tensor]:
         """The adapters' tensors (``self.lerobot``'s names)."""
         return {k: v for k, v in self.lerobot.state_dict().items() if "lora_" in k}
+
+    @torch.no_grad()
+    def merge_lora(self) -> "LeRobotFlowPolicy":
+        """Fold the adapters into the weights they adapt (``W + (alpha / r) B A``) and remove them:
+        the same model as a plain policy (``lora_rank`` 0), whose ``lerobot/`` folder LeRobot
+        loads as the fine-tuned model. The VLM's layers then train whole if it trains on."""
+        from peft.tuners.tuners_utils import BaseTunerLayer
+
+        adapted = [(name, module) for name, module in self.lerobot.named_modules() if isinstance(module, BaseTunerLayer)]
+        for name, module in adapted:
+            module.merge()
+            parent, _, child = name.rpartition(".")
+            setattr(self.lerobot.get_submodule(parent) if parent else self.lerobot, child, module.get_base_layer())
+        self.config = dataclasses.replace(self.config, lora_rank=0)
+        self.prefix_trainable = self.apply_train_scope()
+        return self
 
     # --- memory ----------------------------------------------------------------------------------
     def set_gradient_checkpointing(self, enabled: bool) -> "LeRobotFlowPolicy":
