@@ -7,7 +7,8 @@ few-shot SFT -> RL under the config's budget -> ODE evaluation of ``policy/`` an
 below their start), ``learning.json`` and ``learning.png`` (validation success against env steps,
 the average and every task, one line per seed). A seed whose run folder already holds
 ``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end;
-one that was interrupted resumes from its last checkpoint (or starts again if it had none).
+one that was interrupted resumes from its last checkpoint (one stopped before its first is
+left for you to delete: another invocation may still be running it).
 
     .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
     .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
@@ -20,7 +21,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
 import statistics
 import sys
 import time
@@ -167,8 +167,10 @@ def main(argv=None) -> dict:
         if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
             start = time.perf_counter()
             resume = (Path(cfg.run_dir) / "checkpoints" / "LATEST").is_file()  # interrupted: go on from there
-            if not resume and Path(cfg.run_dir).exists():  # stopped before its first checkpoint: start again
-                shutil.rmtree(cfg.run_dir)
+            if not resume and Path(cfg.run_dir).exists() and any(Path(cfg.run_dir).iterdir()):
+                # Stopped before its first checkpoint, or running in another invocation: never delete it here.
+                sys.exit(f"learning.py: {cfg.run_dir} holds a run without a checkpoint (stopped before its first, or "
+                         "still running in another invocation): once it is not running, delete it to run that seed again")
             summary = train(cfg, resume=resume)
             summary["wall_clock_s_this_session" if resume else "wall_clock_s"] = time.perf_counter() - start
             summary["commit"] = commit()  # the code this seed ran on
