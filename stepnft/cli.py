@@ -134,11 +134,13 @@ def _first_message(box: str) -> str:
 
 
 def _resumable_flags() -> str:
-    """The flags ``--resume`` takes (``TrainConfig.resumable``), e.g. ``--ray.* and --device``."""
+    """The flags ``--resume`` takes (``TrainConfig.resumable``), e.g. ``--ray.*, --device and
+    --gradient-checkpointing``."""
     from stepnft.config import TrainConfig
 
     sections = {k for k, hint in typing.get_type_hints(TrainConfig).items() if dataclasses.is_dataclass(hint)}
-    return " and ".join(f"--{k}.*" if k in sections else f"--{k}" for k in TrainConfig.resumable)
+    flags = [f"--{k.replace('_', '-')}" + (".*" if k in sections else "") for k in TrainConfig.resumable]
+    return " and ".join(flags) if len(flags) < 3 else ", ".join(flags[:-1]) + " and " + flags[-1]
 
 
 def _describe(cls) -> str:

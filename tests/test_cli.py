@@ -224,7 +224,7 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     assert "holds an SFT run, not a training run" in line
 
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
-    assert "takes no other flags than --ray.* and --device; drop: --iterations" in line
+    assert "takes no other flags than --ray.*, --device and --gradient-checkpointing; drop: --iterations" in line
 
 
 def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):
@@ -389,10 +389,11 @@ def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
     would change what it computes, and names them."""
     from stepnft.config import TrainConfig
 
-    assert TrainConfig.resumable == ("ray", "device")
+    assert TrainConfig.resumable == ("ray", "device", "gradient_checkpointing")
     cfg, resume = _config_from_argv(["--resume", str(workspace / "run"), "--ray.timeout-s", "30", "--device",
-                                           "cpu"], "stepnft train", True)
+                                           "cpu", "--gradient-checkpointing"], "stepnft train", True)
     assert resume and cfg.ray.timeout_s == 30 and cfg.iterations == 2 and cfg.run_dir == str(workspace / "run")
+    assert cfg.gradient_checkpointing  # recomputing activations changes memory, not the results
     cfg, _ = _config_from_argv(["--resume", str(workspace / "run"), "--seed", "0"], "stepnft train", True)
     assert cfg.seed == 0  # the run's own value: nothing changes
     for extra, dropped in [(["--ray.timeout-s", "30", "--seed", "3"], "drop: --seed"),
@@ -400,7 +401,8 @@ def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
                            (["--algo.name", "ppo"], "drop: --algo.name"),
                            (["--config", "configs/quickstart.yaml"], "drop: --config configs/quickstart.yaml")]:
         line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", *extra)[::2], "train")
-        assert "takes no other flags than --ray.* and --device" in line or "own config.yaml" in line
+        assert "takes no other flags than --ray.*, --device and --gradient-checkpointing" in line or \
+            "own config.yaml" in line
         assert dropped in line, line
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", "-1")[::2],
                                  "train")
