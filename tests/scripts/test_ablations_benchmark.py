@@ -1,30 +1,20 @@
 """benchmarks/ablations.py: every row is a variant `stepnft compare` knows, and the verdicts
 read the interval on the side the paper claims."""
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
+from benchmark_loader import benchmark_module
+
 from stepnft.algos.variants import VARIANTS
 
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def ablations():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        spec = importlib.util.spec_from_file_location("ablations_benchmark", ROOT / "benchmarks" / "ablations.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module  # its dataclasses look their module up
-        spec.loader.exec_module(module)
+    with benchmark_module("ablations") as module:
         yield module
-    finally:
-        sys.modules.pop("ablations_benchmark", None)
-        sys.path.remove(str(ROOT / "benchmarks"))
 
 
 def test_every_ablation_is_a_known_variant_of_stepnft(ablations):

@@ -1,25 +1,14 @@
 """benchmarks/vla_compute.py: every algorithm gets the same policy calls, and the ratios the
 issue's targets read are the right way round."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
+from benchmark_loader import benchmark_module
 
 
 @pytest.fixture(scope="module")
 def vla_compute():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        spec = importlib.util.spec_from_file_location("vla_compute_benchmark", ROOT / "benchmarks" / "vla_compute.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+    with benchmark_module("vla_compute") as module:
         yield module
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
 
 
 def row(algo, precision, checkpointing, seconds, memory, weights=100.0):
