@@ -10,7 +10,6 @@ from benchmark_loader import benchmark_module
 from stepnft.algos.variants import VARIANTS
 
 
-
 @pytest.fixture(scope="module")
 def ablations():
     with benchmark_module("ablations") as module:
