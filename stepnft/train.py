@@ -72,6 +72,9 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
                 run.save_checkpoint()
         bar.close()
         distributed.broadcast(None)  # the other processes are done
+        # Leave the group together with them (they close on this message), not after the final
+        # evaluation: a follower whose group outlived its peer's by minutes has aborted at exit.
+        distributed.close()
         return _finish(run, logger, sim, log)
 
 
