@@ -57,6 +57,14 @@ PRECISIONS = ("fp32", "bf16")
 stored in bfloat16 and the forward passes under autocast (:meth:`Policy.set_precision`)."""
 
 
+def recompute(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``; while gradients are on, its activations are recomputed in the
+    backward pass instead of kept (``torch.utils.checkpoint``, non-reentrant)."""
+    if torch.is_grad_enabled():
+        return checkpoint(fn, *args, use_reentrant=False, **kwargs)
+    return fn(*args, **kwargs)
+
+
 PROBE_ROWS = 8
 """Observations a saved policy is checked on (:func:`non_finite_samples`)."""
 
@@ -192,8 +200,8 @@ class Policy(nn.Module, ABC):
 
     def _checkpointed(self, fn, *args):
         """``fn(*args)``, recomputed in backward when gradient checkpointing is on."""
-        if self.gradient_checkpointing and not self.checkpoints_layers and torch.is_grad_enabled():
-            return checkpoint(fn, *args, use_reentrant=False)
+        if self.gradient_checkpointing and not self.checkpoints_layers:
+            return recompute(fn, *args)
         return fn(*args)
 
     def select_context(self, context: Any, rows: Tensor) -> Any:

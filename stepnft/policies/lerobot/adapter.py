@@ -32,9 +32,8 @@ from typing import Any, Callable, ClassVar
 import torch
 from safetensors.torch import load_file, save, save_file
 from torch import Tensor, nn
-from torch.utils.checkpoint import checkpoint
 
-from stepnft.policies.base import CONFIG_NAME, Policy, non_finite
+from stepnft.policies.base import CONFIG_NAME, Policy, non_finite, recompute
 from stepnft.policies.lerobot import require_lerobot
 from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
 from stepnft.runs import write_atomic
@@ -88,9 +87,7 @@ def checkpoint_methods(module: nn.Module, names: tuple[str, ...], enabled: bool 
 
     def wrap(original):
         def method(self, *args, **kwargs):
-            if torch.is_grad_enabled():
-                return checkpoint(original, self, *args, use_reentrant=False, **kwargs)
-            return original(self, *args, **kwargs)
+            return recompute(original, self, *args, **kwargs)
         return method
 
     key = (plain, names)
