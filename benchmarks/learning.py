@@ -7,6 +7,9 @@ few-shot SFT -> RL under the config's budget -> ODE evaluation of ``policy/`` an
 below their start), ``learning.json`` and ``learning.png`` (validation success against env steps,
 the average and every task, one line per seed). A seed whose run folder already holds
 ``summary.json`` is reused, so seeds can run in parallel invocations and be tabled at the end;
+so is a seed that ``--out``'s committed ``learning.json`` records with the same arguments (run
+folders are not committed: a fresh clone adds seeds to a published table without rerunning the
+others), and ``--paired-with`` reads a folder's ``learning.json`` where its run folders are absent;
 one that was interrupted resumes from its last checkpoint (one stopped before its first is
 left for you to delete: another invocation may still be running it).
 
@@ -105,6 +108,30 @@ def table(runs: list[dict], tasks: list[str]) -> str:
     return "\n".join(lines)
 
 
+RUN_ARGS = ("config", "tasks", "demos", "task_demos", "env_steps", "eval_episodes", "set")
+"""The arguments that define a seed's run (the others only say which seeds, where, and pairings)."""
+
+
+def recorded_runs(folder: Path, args: argparse.Namespace | None = None) -> dict[int, dict]:
+    """The finished runs ``folder/learning.json`` records, by seed ({} if none, or if ``args``
+    is given and the file was made with other run-defining arguments)."""
+    path = Path(folder) / "learning.json"
+    if not path.is_file():
+        return {}
+    recorded = json.loads(path.read_text())
+    if args is not None and any(recorded["args"].get(k) != getattr(args, k) for k in RUN_ARGS):
+        return {}
+    return {r["seed"]: {k: v for k, v in r.items() if k not in ("seed", "run_dir")} for r in recorded["runs"]}
+
+
+def run_summary(folder: Path, seed: int) -> dict | None:
+    """A seed's finished run in ``folder``: its ``summary.json``, else what ``learning.json`` records."""
+    path = Path(folder) / f"seed{seed}" / "summary.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    return recorded_runs(folder).get(seed)
+
+
 def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
     """Markdown: this folder's final success minus each other folder's, seed by seed (same SFT
     start), per task and on average over every (seed, task) pair, with 95 % t-intervals."""
@@ -115,12 +142,11 @@ def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
         diffs: dict[str, list[float]] = {t: [] for t in tasks}
         seeds = []
         for r in runs:
-            path = Path(other) / f"seed{r['seed']}" / "summary.json"
-            if not path.is_file():
+            theirs = run_summary(Path(other), r["seed"])
+            if theirs is None:
                 continue
-            theirs = json.loads(path.read_text())
             if abs(theirs["average"]["before"] - r["average"]["before"]) > 1e-9:
-                _fail(f"--paired-with {other}: seed {r['seed']} started from another SFT policy ({path}); no pairing")
+                _fail(f"--paired-with {other}: seed {r['seed']} started from another SFT policy; no pairing")
             seeds.append(r["seed"])
             for t in tasks:
                 diffs[t].append(r["tasks"][t]["after"]["success"] - theirs["tasks"][t]["after"]["success"])
@@ -131,13 +157,22 @@ def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
     return "\n".join(lines)
 
 
+def curves(run_dir: Path, tasks: list[str]) -> dict[str, list]:
+    """Validation success against env steps (the average and each task) from a run's metrics,
+    kept in ``learning.json`` so that the figure can be redrawn without the run folder."""
+    records = read_metrics(Path(run_dir) / "metrics.jsonl")
+    keys = ["charts/validation_success_rate"] + [f"validation/{t}" for t in tasks]
+    return {k: [[x["env_steps"], x[k]] for x in records if x.get(k) is not None] for k in keys}
+
+
 def plot(out: Path, runs: list[dict], tasks: list[str]) -> Path:
+    """The validation curves of every run that has them (a run recorded before they were kept
+    in ``learning.json``, whose folder is not here, has none)."""
     panels = [("average", "charts/validation_success_rate")] + [(t, f"validation/{t}") for t in tasks]
     fig, axes = task_panels([p[0] for p in panels])
     for ax, (_, key) in zip(axes.flat, panels):
         for r in runs:
-            records = read_metrics(Path(r["run_dir"]) / "metrics.jsonl")
-            points = [(x["env_steps"], x[key]) for x in records if x.get(key) is not None]
+            points = r.get("curves", {}).get(key)
             if points:
                 ax.plot(*zip(*points), marker="o", ms=2, label=f"seed {r['seed']}")
     return save_panels(fig, axes, "validation success (ODE) during π-StepNFT, per seed", out / "learning.png")
@@ -155,6 +190,7 @@ def main(argv=None) -> dict:
     if args.task_demos is not None:
         demos = dataclasses.replace(demos, task_episodes={k: int(v) for k, v in (s.split("=") for s in args.task_demos)})
     runs = []
+    recorded = recorded_runs(out, args)  # published seeds whose run folders this checkout lacks
     for seed in args.seeds:
         cfg = dataclasses.replace(
             base, seed=seed, run_dir=str(out / f"seed{seed}"),
@@ -164,6 +200,10 @@ def main(argv=None) -> dict:
             env_step_budget=args.env_steps if args.env_steps is not None else base.env_step_budget,
         )
         done = Path(cfg.run_dir) / "summary.json"
+        if not done.is_file() and seed in recorded and not Path(cfg.run_dir).exists():
+            print(f"learning.py: seed {seed}: the run {out / 'learning.json'} records (commit {recorded[seed].get('commit')})")
+            runs.append({"seed": seed, "run_dir": cfg.run_dir, **recorded[seed]})
+            continue
         if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
             start = time.perf_counter()
             resume = (Path(cfg.run_dir) / "checkpoints" / "LATEST").is_file()  # interrupted: go on from there
@@ -176,7 +216,7 @@ def main(argv=None) -> dict:
             summary["commit"] = commit()  # the code this seed ran on
             done.write_text(json.dumps(summary, indent=2))
         summary = json.loads(done.read_text())
-        runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary})
+        runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary, "curves": curves(Path(cfg.run_dir), tasks)})
 
     steps = [float(r["env_steps"]) for r in runs]
     wall = [r.get("wall_clock_s", r.get("wall_clock_s_this_session", float("nan"))) for r in runs]

@@ -225,7 +225,8 @@ def save_panels(fig, axes, title: str, path: Path) -> Path:
     """Legend on the first panel, ``title`` on top, saved as ``path``."""
     import matplotlib.pyplot as plt
 
-    axes.flat[0].legend(loc="lower right", fontsize=7)
+    if axes.flat[0].get_legend_handles_labels()[0]:  # nothing drawn: no empty legend
+        axes.flat[0].legend(loc="lower right", fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -1,0 +1,67 @@
+"""benchmarks/learning.py: a fresh clone (no run folders, only the committed learning.json)
+adds seeds to a published table and pairs with published folders, without rerunning them."""
+
+import json
+
+import pytest
+
+from benchmark_loader import ROOT, benchmark_module
+
+TASKS = ["reach-v3", "push-v3"]
+
+
+@pytest.fixture(scope="module")
+def learning():
+    with benchmark_module("learning") as module:
+        yield module
+
+
+def run(seed: int, before: float, after: float) -> dict:
+    task = lambda b, a: {"before": {"success": b, "ci95": [b, b]}, "after": {"success": a, "ci95": [a, a]},  # noqa: E731
+                         "best": {"success": a, "ci95": [a, a]}}
+    return {"seed": seed, "run_dir": f"gone/seed{seed}", "tasks": {t: task(before, after) for t in TASKS},
+            "average": {"before": before, "after": after, "best": after}, "below_start": [], "env_steps": 1000,
+            "wall_clock_s": 60.0, "commit": "abc1234"}
+
+
+def publish(folder, args: list[str], runs: list[dict], learning) -> None:
+    folder.mkdir(parents=True)
+    recorded = vars(learning.parse_args(args + ["--out", str(folder)]))
+    (folder / "learning.json").write_text(json.dumps({"args": recorded, "runs": runs}))
+
+
+def test_recorded_seeds_are_reused_and_paired_without_their_folders(learning, tmp_path, monkeypatch):
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    args = ["--config", config, "--tasks", *TASKS, "--set", "algo.labels=episode"]
+    publish(tmp_path / "mine", args, [run(0, 0.4, 0.7)], learning)
+    publish(tmp_path / "other", args[:-2], [run(0, 0.4, 0.5), run(1, 0.6, 0.9)], learning)
+
+    def train(cfg, resume=False):
+        raise AssertionError(f"seed {cfg.seed} was rerun although learning.json records it")
+
+    monkeypatch.setattr(learning, "train", train)
+    result = learning.main([*args, "--seeds", "0", "--out", str(tmp_path / "mine"),
+                            "--paired-with", str(tmp_path / "other")])
+    assert [r["seed"] for r in result["runs"]] == [0]
+    assert result["runs"][0]["average"]["after"] == 0.7
+    table = (tmp_path / "mine" / "learning.md").read_text()
+    assert "| +0.20" in table  # 0.7 - 0.5 on both tasks, from other's learning.json alone
+    assert (tmp_path / "mine" / "learning.png").is_file()
+
+
+def test_a_recorded_seed_with_other_arguments_is_not_reused(learning, tmp_path, monkeypatch):
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    publish(tmp_path / "mine", ["--config", config, "--tasks", *TASKS], [run(0, 0.4, 0.7)], learning)
+    seen = []
+
+    def train(cfg, resume=False):
+        seen.append(cfg.seed)
+        raise RuntimeError("would train")
+
+    monkeypatch.setattr(learning, "train", train)
+    with pytest.raises(RuntimeError, match="would train"):
+        learning.main(["--config", config, "--tasks", *TASKS, "--set", "algo.labels=episode", "--seeds", "0",
+                       "--out", str(tmp_path / "mine")])
+    assert seen == [0]
+    assert learning.recorded_runs(tmp_path / "mine")[0]["average"]["after"] == 0.7
+    assert learning.run_summary(tmp_path / "mine", 1) is None
