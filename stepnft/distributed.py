@@ -20,6 +20,7 @@ gloo carries CPU tensors, nccl CUDA ones. Outside ``torchrun`` every function he
 
 from __future__ import annotations
 
+import gc
 import os
 import weakref
 from datetime import timedelta
@@ -52,10 +53,20 @@ def init() -> bool:
     return True
 
 
-def close() -> None:
-    """Leave the process group (if any)."""
-    if dist.is_initialized():
-        dist.destroy_process_group()
+def close(wait: bool = False) -> None:
+    """Leave the process group (if any). ``wait``: first wait until every process gets here (the
+    end of a run that went well; after an error the others may never come)."""
+    if not dist.is_initialized():
+        return
+    if wait:
+        dist.barrier()
+    # The DDP wrappers hold the group (its gloo threads): dropped first, so that nothing is left
+    # to destroy it during the interpreter's exit, where a follower has aborted ("terminate
+    # called without an active exception"). The dictionary alone never frees them: each value
+    # refers to its own key.
+    _wrappers.clear()
+    gc.collect()
+    dist.destroy_process_group()
 
 
 def world_size() -> int:

@@ -74,7 +74,7 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         distributed.broadcast(None)  # the other processes are done
         # Leave the group together with them (they close on this message), not after the final
         # evaluation: a follower whose group outlived its peer's by minutes has aborted at exit.
-        distributed.close()
+        distributed.close(wait=True)
         return _finish(run, logger, sim, log)
 
 
@@ -372,6 +372,7 @@ def _follow(cfg: TrainConfig) -> dict:
             torch.set_rng_state(torch_rng)  # what the update draws (e.g. PPO's new critic) is rank 0's
             algo.update(batch)
             algo.end_iteration(it)
+        distributed.close(wait=True)
     finally:
         distributed.close()
     return {}
