@@ -31,7 +31,7 @@ from pathlib import Path
 
 import yaml
 
-from provenance import command, commit
+from provenance import command, commit, packages
 
 from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, read_yaml, to_dict
 from stepnft.evaluate import format_ci
@@ -230,7 +230,7 @@ def main(argv=None) -> dict:
     print(text)
     (out / "learning.md").write_text(text + "\n")
     plot(out, runs, tasks)
-    result = {"command": command(), "commit": commit(), "args": vars(args), "tasks": tasks, "runs": runs,
+    result = {"command": command(), "commit": commit(), "packages": packages(), "args": vars(args), "tasks": tasks, "runs": runs,
               "average": {w: [r["average"][w] for r in runs] for w in ("before", "after", "best")}}
     (out / "learning.json").write_text(json.dumps(result, indent=2))
     return result

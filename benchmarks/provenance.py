@@ -1,5 +1,6 @@
-"""What a results folder records about how it was made: the exact command and the commit it
-ran on (``scripts/stale_results.py`` reads the commit)."""
+"""What a results folder records about how it was made: the exact command, the commit it ran on
+(``scripts/stale_results.py`` reads the commit) and the versions of the packages its numbers
+depend on (the same code gave another SFT start with other versions, before constraints.txt pinned them)."""
 
 from __future__ import annotations
 
@@ -22,3 +23,20 @@ def commit() -> str:
 def command() -> str:
     """The command line that is running, with the interpreter relative to the checkout."""
     return " ".join([os.path.relpath(sys.executable, ROOT), *sys.argv])
+
+
+NUMERIC_PACKAGES = ("torch", "numpy", "scipy", "mujoco", "metaworld", "gymnasium")
+"""The packages whose versions move a run's numbers (physics, sampling, optimisation)."""
+
+
+def packages() -> dict[str, str | None]:
+    """The installed version of each of :data:`NUMERIC_PACKAGES` (None where absent)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {}
+    for name in NUMERIC_PACKAGES:
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            found[name] = None
+    return found

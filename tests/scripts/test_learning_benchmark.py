@@ -65,3 +65,13 @@ def test_a_recorded_seed_with_other_arguments_is_not_reused(learning, tmp_path, 
     assert seen == [0]
     assert learning.recorded_runs(tmp_path / "mine")[0]["average"]["after"] == 0.7
     assert learning.run_summary(tmp_path / "mine", 1) is None
+
+
+def test_the_result_records_the_numeric_packages_versions(learning, tmp_path, monkeypatch):
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    publish(tmp_path / "mine", ["--config", config, "--tasks", *TASKS], [run(0, 0.4, 0.7)], learning)
+    monkeypatch.setattr(learning, "train", lambda cfg, resume=False: pytest.fail("reran a recorded seed"))
+    result = learning.main(["--config", config, "--tasks", *TASKS, "--seeds", "0", "--out", str(tmp_path / "mine")])
+    import torch
+    assert result["packages"]["torch"] == torch.__version__
+    assert set(result["packages"]) >= {"numpy", "mujoco", "metaworld"}
