@@ -124,12 +124,15 @@ def recorded_runs(folder: Path, args: argparse.Namespace | None = None) -> dict[
     return {r["seed"]: {k: v for k, v in r.items() if k not in ("seed", "run_dir")} for r in recorded["runs"]}
 
 
-def run_summary(folder: Path, seed: int) -> dict | None:
-    """A seed's finished run in ``folder``: its ``summary.json``, else what ``learning.json`` records."""
-    path = Path(folder) / f"seed{seed}" / "summary.json"
-    if path.is_file():
-        return json.loads(path.read_text())
-    return recorded_runs(folder).get(seed)
+def finished_runs(folder: Path, seeds: list[int]) -> dict[int, dict]:
+    """Of ``seeds``, the finished runs in ``folder``, by seed: each one's ``summary.json``, else
+    what ``learning.json`` records (read once)."""
+    found = {s: r for s, r in recorded_runs(folder).items() if s in seeds}
+    for seed in seeds:
+        path = Path(folder) / f"seed{seed}" / "summary.json"
+        if path.is_file():
+            found[seed] = json.loads(path.read_text())
+    return found
 
 
 def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
@@ -141,8 +144,9 @@ def paired_table(runs: list[dict], tasks: list[str], others: list[str]) -> str:
     for other in others:
         diffs: dict[str, list[float]] = {t: [] for t in tasks}
         seeds = []
+        finished = finished_runs(Path(other), [r["seed"] for r in runs])
         for r in runs:
-            theirs = run_summary(Path(other), r["seed"])
+            theirs = finished.get(r["seed"])
             if theirs is None:
                 continue
             if abs(theirs["average"]["before"] - r["average"]["before"]) > 1e-9:

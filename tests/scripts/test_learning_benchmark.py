@@ -64,7 +64,7 @@ def test_a_recorded_seed_with_other_arguments_is_not_reused(learning, tmp_path, 
                        "--out", str(tmp_path / "mine")])
     assert seen == [0]
     assert learning.recorded_runs(tmp_path / "mine")[0]["average"]["after"] == 0.7
-    assert learning.run_summary(tmp_path / "mine", 1) is None
+    assert learning.finished_runs(tmp_path / "mine", [1]) == {}
 
 
 def test_the_result_records_the_numeric_packages_versions(learning, tmp_path, monkeypatch):
