@@ -114,12 +114,14 @@ RUN_ARGS = ("config", "tasks", "demos", "task_demos", "env_steps", "eval_episode
 
 def recorded_runs(folder: Path, args: argparse.Namespace | None = None) -> dict[int, dict]:
     """The finished runs ``folder/learning.json`` records, by seed ({} if none, or if ``args``
-    is given and the file was made with other run-defining arguments)."""
+    is given and the file was made with other run-defining arguments or other versions of the
+    packages that move the numbers: those seeds must run again here)."""
     path = Path(folder) / "learning.json"
     if not path.is_file():
         return {}
     recorded = json.loads(path.read_text())
-    if args is not None and any(recorded["args"].get(k) != getattr(args, k) for k in RUN_ARGS):
+    if args is not None and (any(recorded["args"].get(k) != getattr(args, k) for k in RUN_ARGS)
+                             or recorded.get("packages") != packages()):
         return {}
     return {r["seed"]: {k: v for k, v in r.items() if k not in ("seed", "run_dir")} for r in recorded["runs"]}
 

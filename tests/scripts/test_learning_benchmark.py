@@ -24,10 +24,11 @@ def run(seed: int, before: float, after: float) -> dict:
             "wall_clock_s": 60.0, "commit": "abc1234"}
 
 
-def publish(folder, args: list[str], runs: list[dict], learning) -> None:
+def publish(folder, args: list[str], runs: list[dict], learning, packages: dict | None = None) -> None:
     folder.mkdir(parents=True)
     recorded = vars(learning.parse_args(args + ["--out", str(folder)]))
-    (folder / "learning.json").write_text(json.dumps({"args": recorded, "runs": runs}))
+    packages = learning.packages() if packages is None else packages  # made on this environment by default
+    (folder / "learning.json").write_text(json.dumps({"args": recorded, "packages": packages, "runs": runs}))
 
 
 def test_recorded_seeds_are_reused_and_paired_without_their_folders(learning, tmp_path, monkeypatch):
@@ -75,3 +76,22 @@ def test_the_result_records_the_numeric_packages_versions(learning, tmp_path, mo
     import torch
     assert result["packages"]["torch"] == torch.__version__
     assert set(result["packages"]) >= {"numpy", "mujoco", "metaworld"}
+
+
+def test_a_recorded_seed_from_other_package_versions_is_rerun(learning, tmp_path, monkeypatch):
+    """The same code gave another SFT start with other numpy/scipy/...: such a seed runs again."""
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    args = ["--config", config, "--tasks", *TASKS]
+    other = {**learning.packages(), "numpy": "0.0.1"}
+    publish(tmp_path / "mine", args, [run(0, 0.4, 0.7)], learning, packages=other)
+    seen = []
+
+    def train(cfg, resume=False):
+        seen.append(cfg.seed)
+        raise RuntimeError("would train")
+
+    monkeypatch.setattr(learning, "train", train)
+    with pytest.raises(RuntimeError, match="would train"):
+        learning.main([*args, "--seeds", "0", "--out", str(tmp_path / "mine")])
+    assert seen == [0]
+    assert learning.recorded_runs(tmp_path / "mine")[0]["average"]["after"] == 0.7  # still readable for pairing
