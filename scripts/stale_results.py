@@ -13,6 +13,12 @@ counts for a folder only if a command the folder records (``command`` in its JSO
 one of those files, or one of its commands names no ``--config`` (the default config may be one
 of them). Exit code 0; with ``--fail`` 1 when any folder is stale.
 
+The same code gives other numbers on other versions of numpy, scipy, MuJoCo, ... (docs/experiments.md
+§14), so each folder also gets an *environment* column: ``pinned`` when the ``packages`` its JSON
+files record (benchmarks/provenance.py) are the versions constraints.txt pins, ``differs`` (which)
+otherwise, ``unrecorded`` when it records none (made before the pins: the figures may not come
+back on a pinned checkout even where the code is current). This column does not make a folder stale.
+
     python scripts/stale_results.py            # every folder, stale ones first
     python scripts/stale_results.py --fail     # for CI-style checks
 """
@@ -45,6 +51,37 @@ def recorded(folder: Path, key: str) -> list[str]:
         if isinstance(value, str) and value:
             values.append(value)
     return values
+
+
+def recorded_packages(folder: Path) -> dict[str, str] | None:
+    """The ``packages`` (name -> version) a benchmark wrote into one of the folder's JSON files."""
+    for path in sorted(folder.glob("*.json")):
+        try:
+            value = json.loads(path.read_text()).get("packages")
+        except (ValueError, AttributeError, OSError):
+            continue
+        if isinstance(value, dict) and value:
+            return value
+    return None
+
+
+def pinned_versions(root: Path) -> dict[str, str]:
+    """``name==version`` lines of the checkout's constraints.txt, by lower-case name."""
+    path = root / "constraints.txt"
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return {name.strip().lower(): version.strip() for name, _, version in
+            (line.split("#")[0].partition("==") for line in lines) if version.strip()}
+
+
+def environment(root: Path, folder: Path) -> str:
+    """``pinned``, ``unrecorded`` or ``differs: name have!=pin, ...`` (local tags like +cpu ignored)."""
+    packages = recorded_packages(folder)
+    if packages is None:
+        return "unrecorded"
+    pins = pinned_versions(root)
+    off = [f"{name} {version}!={pins[name.lower()]}" for name, version in sorted(packages.items())
+           if version and name.lower() in pins and version.split("+")[0] != pins[name.lower()]]
+    return "differs: " + ", ".join(off) if off else "pinned"
 
 
 def recorded_commit(folder: Path) -> str | None:
@@ -124,14 +161,16 @@ def main(argv=None) -> int:
     rows = []
     for folder in sorted(f for f in (root / "benchmarks" / "results").iterdir() if f.is_dir()):
         commit, recorded = folder_commit(root, folder)
+        env = environment(root, folder)
         if commit is None:
-            rows.append((True, folder.name, "not committed", []))
+            rows.append((True, folder.name, "not committed", [], env))
             continue
         changes = changes_since(root, commit, recorded, recorded_commands(folder), folder.name)
-        rows.append((bool(changes), folder.name, f"{'recorded' if recorded else 'committed in'} {commit}", changes))
-    for stale, name, where, changes in sorted(rows, key=lambda r: (not r[0], r[1])):
+        rows.append((bool(changes), folder.name, f"{'recorded' if recorded else 'committed in'} {commit}", changes, env))
+    print(f"{'folder':<32} {'made on':<22} {'code':<40} environment")
+    for stale, name, where, changes, env in sorted(rows, key=lambda r: (not r[0], r[1])):
         state = f"STALE ({len(changes)} code commits since)" if stale else "current"
-        print(f"{name:<32} {where:<22} {state}")
+        print(f"{name:<32} {where:<22} {state:<40} {env}")
         if stale and changes:
             print(f"{'':<32} latest: {changes[0][:100]}")
     return 1 if args.fail and any(r[0] for r in rows) else 0

@@ -16,7 +16,14 @@ def git(root: Path, *args: str) -> str:
 
 def stale(root: Path) -> dict[str, bool]:
     out = subprocess.run([sys.executable, str(SCRIPT), "--root", str(root)], capture_output=True, text=True, check=True)
-    return {line.split()[0]: "STALE" in line for line in out.stdout.splitlines() if not line.startswith(" ")}
+    return {line.split()[0]: "STALE" in line for line in out.stdout.splitlines()[1:] if not line.startswith(" ")}
+
+
+def environments(root: Path) -> dict[str, str]:
+    out = subprocess.run([sys.executable, str(SCRIPT), "--root", str(root)], capture_output=True, text=True, check=True)
+    header, *rows = out.stdout.splitlines()
+    column = header.index("environment")
+    return {line.split()[0]: line[column:].strip() for line in rows if not line.startswith(" ")}
 
 
 def test_folders_older_than_the_code_are_listed_as_stale(tmp_path):
@@ -108,3 +115,24 @@ def test_a_neutral_commit_may_name_the_folders_it_still_counts_for(tmp_path):
     change = git(tmp_path, "rev-parse", "--short", "HEAD")
     (results / "neutral_commits.txt").write_text(f"{change}  except:libero,vla  MetaWorld bit for bit\n")
     assert stale(tmp_path) == {"metaworld": False, "libero": True}
+
+
+def test_the_environment_column_compares_recorded_packages_with_the_pins(tmp_path):
+    git(tmp_path, "init", "-q")
+    (tmp_path / "stepnft").mkdir()
+    (tmp_path / "stepnft" / "core.py").write_text("x = 1\n")
+    (tmp_path / "constraints.txt").write_text("# pins\nnumpy==2.4.6\ntorch==2.13.0\n")
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "code")
+    head = git(tmp_path, "rev-parse", "--short", "HEAD")
+    results = tmp_path / "benchmarks" / "results"
+    recorded = {"pinned": {"numpy": "2.4.6", "torch": "2.13.0+cpu", "mujoco": "3.3.0"},
+                "other": {"numpy": "2.3.1", "torch": "2.13.0+cpu"}, "before_pins": None}
+    for name, packages in recorded.items():
+        (results / name).mkdir(parents=True)
+        (results / name / "r.json").write_text(json.dumps({"commit": head, **({"packages": packages} if packages else {})}))
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "commit", "-qm", "results")
+    assert environments(tmp_path) == {"before_pins": "unrecorded", "other": "differs: numpy 2.3.1!=2.4.6",
+                                      "pinned": "pinned"}
+    assert not any(stale(tmp_path).values())  # the environment column alone makes nothing stale
