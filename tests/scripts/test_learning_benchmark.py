@@ -31,6 +31,18 @@ def publish(folder, args: list[str], runs: list[dict], learning, packages: dict 
     (folder / "learning.json").write_text(json.dumps({"args": recorded, "packages": packages, "runs": runs}))
 
 
+def would_train(learning, monkeypatch) -> list[int]:
+    """Make ``learning.train`` raise "would train"; the seeds it was asked to train are listed."""
+    seen = []
+
+    def train(cfg, resume=False):
+        seen.append(cfg.seed)
+        raise RuntimeError("would train")
+
+    monkeypatch.setattr(learning, "train", train)
+    return seen
+
+
 def test_recorded_seeds_are_reused_and_paired_without_their_folders(learning, tmp_path, monkeypatch):
     config = str(ROOT / "configs" / "quickstart.yaml")
     args = ["--config", config, "--tasks", *TASKS, "--set", "algo.labels=episode"]
@@ -53,13 +65,7 @@ def test_recorded_seeds_are_reused_and_paired_without_their_folders(learning, tm
 def test_a_recorded_seed_with_other_arguments_is_not_reused(learning, tmp_path, monkeypatch):
     config = str(ROOT / "configs" / "quickstart.yaml")
     publish(tmp_path / "mine", ["--config", config, "--tasks", *TASKS], [run(0, 0.4, 0.7)], learning)
-    seen = []
-
-    def train(cfg, resume=False):
-        seen.append(cfg.seed)
-        raise RuntimeError("would train")
-
-    monkeypatch.setattr(learning, "train", train)
+    seen = would_train(learning, monkeypatch)
     with pytest.raises(RuntimeError, match="would train"):
         learning.main(["--config", config, "--tasks", *TASKS, "--set", "algo.labels=episode", "--seeds", "0",
                        "--out", str(tmp_path / "mine")])
@@ -84,13 +90,7 @@ def test_a_recorded_seed_from_other_package_versions_is_rerun(learning, tmp_path
     args = ["--config", config, "--tasks", *TASKS]
     other = {**learning.packages(), "numpy": "0.0.1"}
     publish(tmp_path / "mine", args, [run(0, 0.4, 0.7)], learning, packages=other)
-    seen = []
-
-    def train(cfg, resume=False):
-        seen.append(cfg.seed)
-        raise RuntimeError("would train")
-
-    monkeypatch.setattr(learning, "train", train)
+    seen = would_train(learning, monkeypatch)
     with pytest.raises(RuntimeError, match="would train"):
         learning.main([*args, "--seeds", "0", "--out", str(tmp_path / "mine")])
     assert seen == [0]
