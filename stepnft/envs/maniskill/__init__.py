@@ -10,7 +10,9 @@ Vulkan driver (``bash scripts/bootstrap.sh --maniskill`` installs both).
 from __future__ import annotations
 
 import logging
+import os
 
+os.environ.setdefault("LP_NUM_THREADS", "1")  # one lavapipe thread per process: workers render side by side
 try:
     import mani_skill  # noqa: F401
     import sapien  # noqa: F401
