@@ -41,7 +41,14 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     major=${have%%.*}
     if [ "$codename" = bookworm ] && [ "${major:-0}" -lt 25 ]; then
       if ! grep -rqs bookworm-backports /etc/apt/sources.list /etc/apt/sources.list.d/; then
-        echo "deb http://deb.debian.org/debian bookworm-backports main" > /etc/apt/sources.list.d/bookworm-backports.list
+        # The Debian mirror this machine already uses (deb822 .sources, else a sources.list line).
+        mirror=$(sed -nE 's/^URIs: *([^ ]+).*/\1/p' /etc/apt/sources.list.d/*.sources 2>/dev/null | grep -v security | head -n 1 || true)
+        [ -n "$mirror" ] || mirror=$(awk '$1 == "deb" && $2 !~ /^\[/ && $2 !~ /security/ { print $2; exit }' /etc/apt/sources.list 2>/dev/null || true)
+        if [ -z "$mirror" ]; then
+          echo "bootstrap.sh: --maniskill: no Debian mirror found in /etc/apt to add bookworm-backports from; add it by hand and install mesa-vulkan-drivers/bookworm-backports" >&2
+          exit 2
+        fi
+        echo "deb $mirror bookworm-backports main" > /etc/apt/sources.list.d/bookworm-backports.list
       fi
       apt-get update -qq
       DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libvulkan1 mesa-vulkan-drivers/bookworm-backports
