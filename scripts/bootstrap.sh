@@ -4,6 +4,8 @@
 # Re-running is cheap: it reinstalls only when pyproject.toml or constraints.txt changed.
 # Options:
 #   --libero    adds the LIBERO extra (docs/libero.md; 622 MB of assets), as STEPNFT_EXTRAS=...,libero does.
+#   --maniskill adds the ManiSkill3 extra (docs/maniskill.md) and, when root with apt, a Vulkan driver:
+#               SAPIEN needs one even without cameras; on Debian 12 Mesa's lavapipe 25 from bookworm-backports.
 #   --lerobot   also the optional LeRobot environment .venv-lerobot (SmolVLA, docs/lerobot.md):
 #               torch 2.10.0 + torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by
 #               constraints-lerobot.txt, with stepnft installed editable; about 2 minutes and
@@ -14,18 +16,45 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 EXTRAS=${STEPNFT_EXTRAS:-test,video}
 LEROBOT=0
+MANISKILL=0
 for arg in "$@"; do
   case "$arg" in
     --libero) EXTRAS="$EXTRAS,libero" ;;
     --lerobot) LEROBOT=1 ;;
-    *) echo "bootstrap.sh: unknown option $arg (known: --libero, --lerobot)" >&2; exit 2 ;;
+    --maniskill) EXTRAS="$EXTRAS,maniskill"; MANISKILL=1 ;;
+    *) echo "bootstrap.sh: unknown option $arg (known: --libero, --lerobot, --maniskill)" >&2; exit 2 ;;
   esac
 done
+case ",$EXTRAS," in *,maniskill,*) MANISKILL=1 ;; esac  # STEPNFT_EXTRAS=...,maniskill: its driver too
 
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
   # Mesa's CPU EGL, for MuJoCo rendering (videos, image observations) with MUJOCO_GL=egl.
   if ! dpkg -s libegl1 libegl-mesa0 >/dev/null 2>&1; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0
+  fi
+  if [ "$MANISKILL" = 1 ]; then
+    # SAPIEN's Vulkan device on a CPU machine: Mesa's lavapipe. Debian 12's (Mesa 22) lacks a
+    # feature SAPIEN needs; bookworm-backports has Mesa 25. Only the Vulkan drivers (and the
+    # libdrm they need) come from backports: the EGL Mesa that renders MuJoCo stays as it was.
+    codename=$(. /etc/os-release && echo "${VERSION_CODENAME:-}")
+    have=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null || true)
+    major=${have%%.*}
+    if [ "$codename" = bookworm ] && [ "${major:-0}" -lt 25 ]; then
+      if ! grep -rqs bookworm-backports /etc/apt/sources.list /etc/apt/sources.list.d/; then
+        # The Debian mirror this machine already uses (deb822 .sources, else a sources.list line).
+        mirror=$(sed -nE 's/^URIs: *([^ ]+).*/\1/p' /etc/apt/sources.list.d/*.sources 2>/dev/null | grep -v security | head -n 1 || true)
+        [ -n "$mirror" ] || mirror=$(awk '$1 == "deb" && $2 !~ /^\[/ && $2 !~ /security/ { print $2; exit }' /etc/apt/sources.list 2>/dev/null || true)
+        if [ -z "$mirror" ]; then
+          echo "bootstrap.sh: --maniskill: no Debian mirror found in /etc/apt to add bookworm-backports from; add it by hand and install mesa-vulkan-drivers/bookworm-backports" >&2
+          exit 2
+        fi
+        echo "deb $mirror bookworm-backports main" > /etc/apt/sources.list.d/bookworm-backports.list
+      fi
+      apt-get update -qq
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libvulkan1 mesa-vulkan-drivers/bookworm-backports
+    elif [ -z "$have" ]; then
+      apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libvulkan1 mesa-vulkan-drivers
+    fi
   fi
 fi
 

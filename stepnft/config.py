@@ -42,8 +42,9 @@ class EnvConfig(Settings):
     section: ClassVar[str] = "env"
 
     name: str = "metaworld"
-    """Simulator: metaworld (MetaWorld v3, the default), bandit (a toy for tests) or libero
-    (LIBERO, the optional extra stepnft[libero]; docs/libero.md)."""
+    """Simulator: metaworld (MetaWorld v3, the default), bandit (a toy for tests), libero
+    (LIBERO, the optional extra stepnft[libero]; docs/libero.md) or maniskill (ManiSkill3, the
+    optional extra stepnft[maniskill]; docs/maniskill.md)."""
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """Task names (space- or comma-separated); one multi-task policy serves all of them."""
     envs_per_task: Annotated[int, Range(ge=1)] = 4

@@ -29,6 +29,7 @@ SIMULATORS: dict[str, SimulatorInfo] = {
     "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",)),
     "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",)),
+    "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
 }
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
 
