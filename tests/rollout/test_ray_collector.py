@@ -321,7 +321,9 @@ SHUTDOWN_SCRIPT = textwrap.dedent("""
 
     env = EnvConfig(name="bandit", tasks=["bandit"], envs_per_task=4, max_episode_steps=2)
     collector = RayCollector(env, 2, 0, RayConfig(workers=2, timeout_s=120))
-    workers = collector.worker_pids()
+    # (pid, start time): the machine's pid range is small (32768 here), so a pid may be reused
+    workers = [(pid, open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[19])
+               for pid in collector.worker_pids()]
     policy = FlowPolicy(FlowPolicyConfig(state_dim=2, action_dim=2, horizon=2, n_exec=2, lang_dim=0, hidden_dim=8))
     batch = collector.collect(policy, 4, RolloutSpec(0.3))
     running = descendants()
@@ -339,10 +341,21 @@ def test_close_leaves_no_ray_or_worker_process_behind(ray_instance, tmp_path):
                          cwd=os.getcwd())
     assert out.returncode == 0, out.stderr[-2000:]
     report = json.loads(out.stdout.strip().splitlines()[-1])
-    assert report["episodes"] == 4 and set(report["workers"]) <= set(report["running"])  # Ray ran under it
+    assert report["episodes"] == 4 and {pid for pid, _ in report["workers"]} <= set(report["running"])  # Ray ran under it
     assert report["left"] == []
-    for pid in report["workers"]:
-        assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
+
+    def alive(pid: int, started: str) -> bool:
+        """The worker itself still runs: its pid holds a live process with the worker's start time."""
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError):
+            return False
+        return fields[0] != "Z" and fields[19] == started
+
+    deadline = time.time() + 30  # a killed worker that Ray's shutdown reparented may take a moment to exit under load
+    while any(alive(*w) for w in report["workers"]) and time.time() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid, started in report["workers"] if alive(pid, started)]
 
 
 class Crash(Exception):
