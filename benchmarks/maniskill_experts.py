@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from provenance import NUMERIC_PACKAGES, command, commit, packages
 from stepnft.envs import get_simulator
 
 
@@ -66,7 +67,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     summary = {"seeds": args.seeds, "rows": rows,
-               "command": f".venv/bin/python benchmarks/maniskill_experts.py --seeds {args.seeds}"}
+               "command": command(), "commit": commit(), "packages": packages(NUMERIC_PACKAGES + ("mani-skill", "sapien"))}
     (out / "experts.json").write_text(json.dumps(summary, indent=1))
     lines = ["| task | successes | mean steps of a success | episode cap | failed seeds |", "|---|---|---|---|---|"]
     for row in rows:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from provenance import NUMERIC_PACKAGES, command, commit, packages
 from stepnft.envs import get_simulator
 
 
@@ -110,8 +111,7 @@ def main(argv=None) -> dict:
     summary = {"rows": rows, "load_average_before": load_before, "load_average_after": os.getloadavg(),
                "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
                "lp_num_threads": os.environ.get("LP_NUM_THREADS"),
-               "command": f".venv/bin/python benchmarks/maniskill_throughput.py --steps {args.steps} "
-                          f"--camera-steps {args.camera_steps}"}
+               "command": command(), "commit": commit(), "packages": packages(NUMERIC_PACKAGES + ("mani-skill", "sapien"))}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "throughput.json").write_text(json.dumps(summary, indent=1))

@@ -29,12 +29,13 @@ NUMERIC_PACKAGES = ("torch", "numpy", "scipy", "mujoco", "metaworld", "gymnasium
 """The packages whose versions move a run's numbers (physics, sampling, optimisation)."""
 
 
-def packages() -> dict[str, str | None]:
-    """The installed version of each of :data:`NUMERIC_PACKAGES` (None where absent)."""
+def packages(names: tuple[str, ...] = NUMERIC_PACKAGES) -> dict[str, str | None]:
+    """The installed version of each of ``names`` (None where absent); a simulator's benchmark adds
+    its own packages (e.g. mani-skill, sapien) to :data:`NUMERIC_PACKAGES`."""
     from importlib.metadata import PackageNotFoundError, version
 
     found = {}
-    for name in NUMERIC_PACKAGES:
+    for name in names:
         try:
             found[name] = version(name)
         except PackageNotFoundError:
