@@ -289,6 +289,37 @@ class ShardedChunkVecEnv(_TaskLayout, ShardedVectorEnv):
         return self.run(fn, args)
 
 
+class ChunkEpisode:
+    """The chunk env contract's episode bookkeeping (module doc), one piece for every simulator's
+    chunk env: env steps since reset, success at any step so far, terminated (success, with
+    ``terminate_on_success``), truncated (``max_episode_steps`` reached), and ``info``. The env
+    sets ``max_episode_steps`` and ``terminate_on_success`` (tests may change the cap later)."""
+
+    max_episode_steps: int
+    terminate_on_success: bool
+    _episode_steps = 0
+    _success = _terminated = _truncated = False
+
+    def _start_episode(self, idle: bool = False) -> None:
+        """A new episode; ``idle``: one that is over at once (truncated), the contract's idle reset."""
+        self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, idle
+
+    @property
+    def _ended(self) -> bool:
+        return self._terminated or self._truncated
+
+    def _count_step(self, success: bool) -> bool:
+        """After one env step whose success is ``success``; True once the episode has ended."""
+        self._episode_steps += 1
+        self._success = self._success or success
+        self._terminated = self._success and self.terminate_on_success
+        self._truncated = self._episode_steps >= self.max_episode_steps
+        return self._ended
+
+    def _info(self, steps: int) -> dict[str, Any]:
+        return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
+
+
 def checked_chunk(chunk, action_space: gym.spaces.Box, was_reset: bool) -> np.ndarray:
     """The ``step`` argument of a chunk env as float64 ``[n_exec, A]``, after the contract's
     checks: a reset came first (``was_reset``), and the chunk has ``action_space``'s shape."""

@@ -42,7 +42,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
 
-from stepnft.envs.base import RenderingError, checked_chunk
+from stepnft.envs.base import ChunkEpisode, RenderingError, checked_chunk
 from stepnft.envs.libero.suites import all_tasks, initial_states
 
 STATE_DIM = 8
@@ -84,7 +84,7 @@ def object_poses(obs: dict[str, np.ndarray], names: Sequence[str]) -> np.ndarray
     return poses.reshape(-1)
 
 
-class LiberoChunkEnv(gym.Env):
+class LiberoChunkEnv(ChunkEpisode, gym.Env):
     """One LIBERO task whose action is a chunk of ``n_exec`` actions, run in order (module doc).
 
     ``step`` stops early when the task succeeds (if ``terminate_on_success``) or the episode
@@ -146,8 +146,6 @@ class LiberoChunkEnv(gym.Env):
         self._objects = object_names(self._env.env)
         self.np_random, _ = seeding.np_random(seed)
         self._obs: dict[str, np.ndarray] | None = None
-        self._episode_steps = 0
-        self._success = self._terminated = self._truncated = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Starts an episode from initial state ``seed % 50`` (see the module doc).
@@ -156,7 +154,7 @@ class LiberoChunkEnv(gym.Env):
         if options.get("idle"):
             if self._obs is None:
                 self._obs = {k: np.zeros(space.shape, space.dtype) for k, space in self.observation_space.items()}
-            self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, True
+            self._start_episode(idle=True)
             return self._copy_obs(), self._info(steps=0)
         super().reset(seed=seed)
         index = seed % len(self._init_states) if seed is not None else int(self.np_random.integers(len(self._init_states)))
@@ -174,25 +172,21 @@ class LiberoChunkEnv(gym.Env):
         raw = self._env.set_init_state(np.asarray(state, dtype=np.float64))
         for _ in range(0 if "init_state" in options else self.settle_steps):
             raw, _, _, _ = self._env.step(SETTLE_ACTION)
-        self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, False
+        self._start_episode()
         self._obs = self._observe(raw)
         return self._copy_obs(), self._info(steps=0)
 
     def step(self, chunk: np.ndarray):
         """Runs the rows of ``chunk`` [n_exec, 7] in order; see the class doc for the returns."""
         chunk = checked_chunk(chunk, self.action_space, self._obs is not None)
-        if self._terminated or self._truncated:
+        if self._ended:
             return self._copy_obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
         reward_sum, steps = 0.0, 0
         for action in np.clip(chunk, -1.0, 1.0):
             raw, reward, goal_reached, _ = self._env.step(action)
             steps += 1
-            self._episode_steps += 1
             reward_sum += float(reward)
-            self._success = self._success or bool(goal_reached)
-            self._terminated = self._success and self.terminate_on_success
-            self._truncated = self._episode_steps >= self.max_episode_steps
-            if self._terminated or self._truncated:
+            if self._count_step(bool(goal_reached)):
                 break
         self._obs = self._observe(raw)
         return self._copy_obs(), reward_sum, self._terminated, self._truncated, self._info(steps)
@@ -222,9 +216,6 @@ class LiberoChunkEnv(gym.Env):
 
     def _copy_obs(self) -> dict[str, np.ndarray]:
         return {k: v.copy() for k, v in self._obs.items()}
-
-    def _info(self, steps: int) -> dict[str, Any]:
-        return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
 
     def _render(self, camera: str, height: int, width: int) -> np.ndarray:
         """uint8 [height, width, 3], upright. Shadows stay on (without them a frame takes about

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from gymnasium.utils import seeding
 
-from stepnft.envs.base import checked_chunk
+from stepnft.envs.base import ChunkEpisode, checked_chunk
 from stepnft.envs.maniskill.tasks import STATE_DIM, TASKS
 from stepnft.envs.perturbations import Perturbations
 
@@ -81,7 +81,7 @@ def make_maniskill_env(task: str, **kwargs) -> gym.Env:
         raise
 
 
-class ManiSkillChunkEnv(gym.Env):
+class ManiSkillChunkEnv(ChunkEpisode, gym.Env):
     """One ManiSkill3 task whose action is a chunk of ``n_exec`` actions, run in order.
 
     Observation: {"state": float32 [64], with ``cameras`` "image": uint8 [V, 3, image_size,
@@ -164,10 +164,6 @@ class ManiSkillChunkEnv(gym.Env):
         self._image: np.ndarray | None = None
         self.render_seconds = 0.0
         """Time spent rendering observation images since construction (benchmarks read it)."""
-        self._episode_steps = 0
-        self._success = False
-        self._terminated = False
-        self._truncated = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -178,7 +174,7 @@ class ManiSkillChunkEnv(gym.Env):
                 self._state = np.zeros(STATE_DIM, dtype=np.float32)
                 if self.cameras:
                     self._image = np.zeros(self.observation_space["image"].shape, dtype=np.uint8)
-            self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, True
+            self._start_episode(idle=True)
             return self._obs(), self._info(steps=0)
         super().reset(seed=seed)
         # Always seeded: ManiSkill's unseeded reset would draw from torch's global RNG.
@@ -186,16 +182,13 @@ class ManiSkillChunkEnv(gym.Env):
         obs, _ = self._env.reset(seed=episode_seed)
         self._state = self._padded(obs)
         self._render_views()
-        self._episode_steps = 0
-        self._success = False
-        self._terminated = False
-        self._truncated = False
+        self._start_episode()
         return self._obs(), self._info(steps=0)
 
     def step(self, chunk: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Runs the rows of ``chunk`` [n_exec, 7] in order; see the class doc for the returns."""
         chunk = checked_chunk(chunk, self.action_space, self._state is not None)
-        if self._terminated or self._truncated:
+        if self._ended:
             return self._obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
         reward_sum = 0.0
         steps = 0
@@ -203,12 +196,8 @@ class ManiSkillChunkEnv(gym.Env):
             # ManiSkill's own truncation (its time limit, switched off above) is not used.
             obs, reward, _, _, sim_info = self._env.step(action)
             steps += 1
-            self._episode_steps += 1
             reward_sum += float(reward)
-            self._success = self._success or bool(sim_info["success"])
-            self._terminated = self._success and self.terminate_on_success
-            self._truncated = self._episode_steps >= self.max_episode_steps
-            if self._terminated or self._truncated:
+            if self._count_step(bool(sim_info["success"])):
                 break
         self._state = self._padded(obs)
         self._render_views()
@@ -244,9 +233,6 @@ class ManiSkillChunkEnv(gym.Env):
         if self.cameras:
             obs["image"] = self._image.copy()
         return obs
-
-    def _info(self, steps: int) -> dict[str, Any]:
-        return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
 
     def render(self) -> np.ndarray | None:
         """ManiSkill's video camera (``render_camera``), uint8 [height, width, 3], if built with

@@ -34,7 +34,7 @@ from gymnasium.utils import seeding
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
-from stepnft.envs.base import checked_chunk
+from stepnft.envs.base import ChunkEpisode, checked_chunk
 from stepnft.envs.metaworld.camera import CameraRenderer
 from stepnft.envs.metaworld.instructions import instruction_for, task_instruction_variants, unknown_task_error
 from stepnft.envs.metaworld.perturb import ModelPerturber
@@ -64,7 +64,7 @@ GOAL_MARKER_RADIUS = 0.03
 covers about one pixel at 64 px."""
 
 
-class MetaWorldChunkEnv(gym.Env):
+class MetaWorldChunkEnv(ChunkEpisode, gym.Env):
     """One MetaWorld v3 task whose action is a chunk of `n_exec` actions, run in order.
 
     Observation: {"state": float32 [39] (or [4] with ``state_obs="proprio"``), with ``cameras``
@@ -158,10 +158,6 @@ class MetaWorldChunkEnv(gym.Env):
         self.episode_perturbations: dict[str, dict] = {}
         """The parameters of this episode's perturbations (``Perturbations.sample``)."""
         self._action_noise: tuple[np.random.Generator, float] | None = None
-        self._episode_steps = 0
-        self._success = False
-        self._terminated = False
-        self._truncated = False
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -173,7 +169,7 @@ class MetaWorldChunkEnv(gym.Env):
                 self._state = np.zeros(OBS_DIM, dtype=np.float32)
                 if self._cameras is not None:
                     self._image = np.zeros(self.observation_space["image"].shape, dtype=np.uint8)
-            self._episode_steps, self._success, self._terminated, self._truncated = 0, False, False, True
+            self._start_episode(idle=True)
             return self._obs(), self._info(steps=0)
         super().reset(seed=seed)
         if self._perturber is not None:
@@ -183,16 +179,13 @@ class MetaWorldChunkEnv(gym.Env):
         state, _ = self._sim.reset()
         self._state = state.astype(np.float32)
         self._render_views()
-        self._episode_steps = 0
-        self._success = False
-        self._terminated = False
-        self._truncated = False
+        self._start_episode()
         return self._obs(), self._info(steps=0)
 
     def step(self, chunk: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Runs the rows of `chunk` [n_exec, 4] in order; see the class doc for the returns."""
         chunk = checked_chunk(chunk, self.action_space, self._state is not None)
-        if self._terminated or self._truncated:
+        if self._ended:
             return self._obs(), 0.0, self._terminated, self._truncated, self._info(steps=0)
 
         reward_sum = 0.0
@@ -203,12 +196,8 @@ class MetaWorldChunkEnv(gym.Env):
                 action = np.clip(action + rng.normal(0.0, std, size=action.shape), -1.0, 1.0)
             state, reward, _, _, sim_info = self._sim.step(action)
             steps += 1
-            self._episode_steps += 1
             reward_sum += float(reward)
-            self._success = self._success or bool(sim_info["success"])
-            self._terminated = self._success and self.terminate_on_success
-            self._truncated = self._episode_steps >= self.max_episode_steps
-            if self._terminated or self._truncated:
+            if self._count_step(bool(sim_info["success"])):
                 break
         self._state = state.astype(np.float32)
         self._render_views()
@@ -237,9 +226,6 @@ class MetaWorldChunkEnv(gym.Env):
         if "instruction" in self.observation_space.spaces:
             obs["instruction"] = np.int64(self._instruction)
         return obs
-
-    def _info(self, steps: int) -> dict[str, Any]:
-        return {"success": self._success, "steps": steps, "episode_steps": self._episode_steps}
 
     def render(self) -> np.ndarray | None:
         """The video camera's image (``CAMERA``), uint8 [height, width, 3] upright, if built
