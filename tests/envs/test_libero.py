@@ -10,6 +10,7 @@ try:
 except ImportError as err:
     pytest.skip(f"the LIBERO extra is not installed: {err}", allow_module_level=True)
 
+from chunk_contract import check_chunk_contract
 from stepnft.cli import main
 from stepnft.data.demos import demos_to_chunks, load_demos
 from stepnft.envs import get_simulator, make_vec_env
@@ -99,25 +100,8 @@ def test_reset_is_a_function_of_the_seed(sim, env):
 
 
 def test_chunk_contract(env):
-    env.max_episode_steps = 6  # this test only
-    try:
-        obs, info = env.reset(seed=0)
-        assert info == {"success": False, "steps": 0, "episode_steps": 0}
-        chunk = np.zeros((4, 7), np.float32)
-        obs, reward, terminated, truncated, info = env.step(chunk)
-        assert (info["steps"], info["episode_steps"], terminated, truncated) == (4, 4, False, False)
-        obs, reward, terminated, truncated, info = env.step(chunk)
-        assert (info["steps"], info["episode_steps"], truncated, info["success"]) == (2, 6, True, False)
-        after, reward, terminated, truncated, info = env.step(np.ones((4, 7), np.float32))
-        assert (reward, info["steps"], truncated) == (0.0, 0, True)  # stepping an ended episode: a no-op
-        np.testing.assert_array_equal(after["state"], obs["state"])
-        idle, info = env.reset(options={"idle": True})
-        assert info["episode_steps"] == 0 and env.step(chunk)[3] and env.step(chunk)[4]["steps"] == 0
-        with pytest.raises(ValueError, match="shape"):
-            env.reset(seed=0)
-            env.step(np.zeros((3, 7), np.float32))
-    finally:
-        env.max_episode_steps = 280
+    check_chunk_contract(env, 7)
+    assert env.max_episode_steps == 280
 
 
 def test_a_replayed_demonstration_reaches_success_from_the_task_predicate(env, demo_dir):
