@@ -40,29 +40,23 @@ def git(root: Path, *args: str) -> str:
     return subprocess.run(["git", *args], capture_output=True, text=True, cwd=root, check=False).stdout.strip()
 
 
-def recorded(folder: Path, key: str) -> list[str]:
-    """The non-empty strings a benchmark wrote under ``key`` into the folder's JSON files."""
+def recorded(folder: Path, key: str, kind: type = str) -> list:
+    """The non-empty values of type ``kind`` a benchmark wrote under ``key`` into the folder's JSON files."""
     values = []
     for path in sorted(folder.glob("*.json")):
         try:
             value = json.loads(path.read_text()).get(key)
         except (ValueError, AttributeError, OSError):
             continue
-        if isinstance(value, str) and value:
+        if isinstance(value, kind) and value:
             values.append(value)
     return values
 
 
 def recorded_packages(folder: Path) -> dict[str, str] | None:
     """The ``packages`` (name -> version) a benchmark wrote into one of the folder's JSON files."""
-    for path in sorted(folder.glob("*.json")):
-        try:
-            value = json.loads(path.read_text()).get("packages")
-        except (ValueError, AttributeError, OSError):
-            continue
-        if isinstance(value, dict) and value:
-            return value
-    return None
+    found = recorded(folder, "packages", dict)
+    return found[0] if found else None
 
 
 def pinned_versions(root: Path) -> dict[str, str]:
