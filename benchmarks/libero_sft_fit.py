@@ -6,7 +6,10 @@ on (episodes 0-4 of each task file) and on held-out ones (5-9). Beside it, a pla
 regression (state -> action, 2 x 256, 3,000 Adam steps, MSE) on the same training episodes, for
 three observations: the 64-d full state, the proprioception with the object of interest (15-d)
 and the proprioception alone (8-d), with the state standard deviation floored at 1e-3 and at
-the flow policy's 0.05. Prints and writes ``fit.md`` and ``fit.json`` under ``--out``.
+the flow policy's 0.05. ``--reference RUN DEMOS`` adds, for scale, the same error of a MetaWorld
+SFT policy (``RUN/sft_policy`` of a ``benchmarks/learning.py`` run, whose SFT succeeds) on its own
+demonstrations (``DEMOS``, the run's ``demos_seed<s>``). Prints and writes ``fit.md`` and
+``fit.json`` under ``--out``.
 
     MUJOCO_GL=egl python -m stepnft.envs.libero.scripted --tasks $TASKS --episodes 10 --out /tmp/lib/demos10
     MUJOCO_GL=egl python -m stepnft.cli sft --config configs/libero_state.yaml --demos.path /tmp/lib/demos10 \\
@@ -51,6 +54,31 @@ def policy_error(policy_dir: Path, episodes_by_task: dict, tasks: list[str]) -> 
     return out
 
 
+def reference_error(run: Path, demos_dir: Path) -> dict:
+    """First-action error of a MetaWorld run's SFT policy on the demonstrations it was trained on."""
+    from stepnft.data.demos import load_demos
+    from stepnft.envs import get_simulator
+    from stepnft.policies.base import Policy
+
+    import yaml
+
+    tasks = yaml.safe_load((run / "config.yaml").read_text())["env"]["tasks"]
+    sim = get_simulator("metaworld")
+    policy = Policy.from_pretrained(run / "sft_policy")
+    policy.eval()
+    policy.processor.bind_instructions([sim.instruction(t) for t in tasks], cache_dir=run / "lang_cache")
+    errors, actions = [], []
+    for d in load_demos(demos_dir):
+        obs = torch.as_tensor(d.observations[:-1][:, :policy.config.state_dim])
+        raw = {"state": obs, "task": torch.full((len(obs),), tasks.index(d.task))}
+        sample = policy.sample(policy.prepare(raw), noise_level=0.0, generator=torch.Generator().manual_seed(0))
+        errors.append(np.abs(sample.actions[:, 0].numpy() - d.actions))
+        actions.append(np.abs(d.actions))
+    return {"train": np.concatenate(errors).mean(0).round(3).tolist(), "mean_abs_action": np.concatenate(actions).mean(0).round(3).tolist(),
+            "setting": f"MetaWorld {', '.join(tasks)}; state {policy.config.state_dim}-d, horizon {policy.config.horizon}, "
+                       f"n_exec {policy.config.n_exec}; actions x y z grip"}
+
+
 def regression_error(episodes_by_task: dict, tasks: list[str], columns: slice, floor: float, seed: int = 0) -> dict:
     torch.manual_seed(seed)
     train = [d for t in tasks for d in episodes_by_task[t][:5]]
@@ -82,6 +110,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--demos", required=True, help="LIBERO HDF5 demonstrations, >= 10 per task (the scripted recorder's)")
     p.add_argument("--policies", nargs="*", default=[], help="saved SFT policies (RUN/policy) trained on episodes 0-4")
+    p.add_argument("--reference", nargs=2, metavar=("RUN", "DEMOS"), default=None,
+                   help="a MetaWorld benchmarks/learning.py run folder and its demonstrations, for scale")
     p.add_argument("--out", default="benchmarks/results/libero_sft_fit")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -99,11 +129,16 @@ def main() -> int:
         for floor in (1e-3, 0.05):
             rows.append({"model": f"MLP regression, {name}, std floor {floor:g}",
                          **regression_error(by_task, tasks, columns, floor)})
+    if args.reference:
+        rows.append({"model": f"MetaWorld SFT policy {args.reference[0]} (reference)",
+                     **reference_error(Path(args.reference[0]), Path(args.reference[1]))})
     lines = ["| model | train: first-action MAE (" + " ".join(DIMS) + ") | held-out |", "|---|---|---|",
              f"| (mean absolute action) | {' '.join(f'{v:.2f}' for v in mean_abs)} | |"]
     for r in rows:
         model = r["model"] + (f" ({r['setting']})" if "setting" in r else "")
-        lines.append(f"| {model} | {' '.join(f'{v:.3f}' for v in r['train'])} | {' '.join(f'{v:.3f}' for v in r['held-out'])} |")
+        held_out = " ".join(f"{v:.3f}" for v in r["held-out"]) if "held-out" in r else \
+            "(mean absolute action " + " ".join(f"{v:.2f}" for v in r["mean_abs_action"]) + ")"
+        lines.append(f"| {model} | {' '.join(f'{v:.3f}' for v in r['train'])} | {held_out} |")
     text = "\n".join(lines) + f"\n\nTasks: {', '.join(tasks)}.\n\nCommand: `{command()}` (commit {commit()}).\n"
     print(text)
     out = Path(args.out)
