@@ -33,6 +33,22 @@ from provenance import command, commit  # noqa: E402
 DIMS = ("x", "y", "z", "rx", "ry", "rz", "grip")
 
 
+def first_action_errors(policy, episodes, tasks: list[str]) -> np.ndarray:
+    """|first action of the policy's ODE chunk - the demonstrator's action| at every step of
+    ``episodes``, [steps, A]; the policy is bound to ``tasks``' instructions, in order."""
+    errors = []
+    for d in episodes:
+        obs = torch.as_tensor(d.observations[:-1][:, :policy.config.state_dim])
+        raw = {"state": obs, "task": torch.full((len(obs),), tasks.index(d.task))}
+        sample = policy.sample(policy.prepare(raw), noise_level=0.0, generator=torch.Generator().manual_seed(0))
+        errors.append(np.abs(sample.actions[:, 0].numpy() - d.actions))
+    return np.concatenate(errors)
+
+
+def setting(policy) -> str:
+    return f"state {policy.config.state_dim}-d, horizon {policy.config.horizon}, n_exec {policy.config.n_exec}"
+
+
 def policy_error(policy_dir: Path, episodes_by_task: dict, tasks: list[str]) -> dict:
     from stepnft.envs.libero.suites import all_tasks
     from stepnft.policies.base import Policy
@@ -42,15 +58,9 @@ def policy_error(policy_dir: Path, episodes_by_task: dict, tasks: list[str]) -> 
     policy.processor.bind_instructions([all_tasks()[t].instruction for t in tasks], cache_dir=policy_dir.parent / "lang_cache")
     out = {}
     for split, part in (("train", slice(0, 5)), ("held-out", slice(5, 10))):
-        errors = []
-        for k, task in enumerate(tasks):
-            for d in episodes_by_task[task][part]:
-                obs = torch.as_tensor(d.observations[:-1][:, :policy.config.state_dim])
-                raw = {"state": obs, "task": torch.full((len(obs),), k)}
-                sample = policy.sample(policy.prepare(raw), noise_level=0.0, generator=torch.Generator().manual_seed(0))
-                errors.append(np.abs(sample.actions[:, 0].numpy() - d.actions))
-        out[split] = np.concatenate(errors).mean(0).round(3).tolist()
-    out["setting"] = f"state {policy.config.state_dim}-d, horizon {policy.config.horizon}, n_exec {policy.config.n_exec}"
+        episodes = [d for task in tasks for d in episodes_by_task[task][part]]
+        out[split] = first_action_errors(policy, episodes, tasks).mean(0).round(3).tolist()
+    out["setting"] = setting(policy)
     return out
 
 
@@ -67,16 +77,11 @@ def reference_error(run: Path, demos_dir: Path) -> dict:
     policy = Policy.from_pretrained(run / "sft_policy")
     policy.eval()
     policy.processor.bind_instructions([sim.instruction(t) for t in tasks], cache_dir=run / "lang_cache")
-    errors, actions = [], []
-    for d in load_demos(demos_dir):
-        obs = torch.as_tensor(d.observations[:-1][:, :policy.config.state_dim])
-        raw = {"state": obs, "task": torch.full((len(obs),), tasks.index(d.task))}
-        sample = policy.sample(policy.prepare(raw), noise_level=0.0, generator=torch.Generator().manual_seed(0))
-        errors.append(np.abs(sample.actions[:, 0].numpy() - d.actions))
-        actions.append(np.abs(d.actions))
-    return {"train": np.concatenate(errors).mean(0).round(3).tolist(), "mean_abs_action": np.concatenate(actions).mean(0).round(3).tolist(),
-            "setting": f"MetaWorld {', '.join(tasks)}; state {policy.config.state_dim}-d, horizon {policy.config.horizon}, "
-                       f"n_exec {policy.config.n_exec}; actions x y z grip"}
+    episodes = load_demos(demos_dir)
+    errors = first_action_errors(policy, episodes, tasks)
+    actions = np.abs(np.concatenate([d.actions for d in episodes]))
+    return {"train": errors.mean(0).round(3).tolist(), "mean_abs_action": actions.mean(0).round(3).tolist(),
+            "setting": f"MetaWorld {', '.join(tasks)}; {setting(policy)}; actions x y z grip"}
 
 
 def regression_error(episodes_by_task: dict, tasks: list[str], columns: slice, floor: float, seed: int = 0) -> dict:
