@@ -212,6 +212,7 @@ def main(argv=None) -> dict:
             continue
         if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
             start = time.perf_counter()
+            ran_on = commit()  # before training: the code may change (a commit, an edit) while a seed runs
             resume = (Path(cfg.run_dir) / "checkpoints" / "LATEST").is_file()  # interrupted: go on from there
             if not resume and Path(cfg.run_dir).exists() and any(Path(cfg.run_dir).iterdir()):
                 # Stopped before its first checkpoint, or running in another invocation: never delete it here.
@@ -219,7 +220,7 @@ def main(argv=None) -> dict:
                          "still running in another invocation): once it is not running, delete it to run that seed again")
             summary = train(cfg, resume=resume)
             summary["wall_clock_s_this_session" if resume else "wall_clock_s"] = time.perf_counter() - start
-            summary["commit"] = commit()  # the code this seed ran on
+            summary["commit"] = ran_on  # the code this seed ran on (this session's part of it, if resumed)
             done.write_text(json.dumps(summary, indent=2))
         summary = json.loads(done.read_text())
         runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary, "curves": curves(Path(cfg.run_dir), tasks)})
