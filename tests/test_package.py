@@ -1,18 +1,26 @@
 """The package itself: what importing it sets up."""
 
 import os
+import subprocess
+import sys
 
 
-def test_importing_stepnft_caps_onednn_at_avx2_unless_set():
-    """The same numbers on every x86 CPU (stepnft/__init__.py): oneDNN's AVX-512 kernels sum in
-    another order. A value the user set is kept."""
-    import subprocess
-    import sys
+def _run(code: str, **env: str) -> str:
+    base = {k: v for k, v in os.environ.items() if k not in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")}
+    return subprocess.run([sys.executable, "-c", code], env=base | env, capture_output=True, text=True,
+                          check=True).stdout.strip()
 
-    code = "import os, stepnft; print(os.environ['ONEDNN_MAX_CPU_ISA'])"
-    env = {k: v for k, v in os.environ.items() if k != "ONEDNN_MAX_CPU_ISA"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "AVX2"
-    out = subprocess.run([sys.executable, "-c", code], env=env | {"ONEDNN_MAX_CPU_ISA": "AVX512_CORE"},
-                         capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "AVX512_CORE"
+
+def test_importing_stepnft_caps_onednn_and_aten_at_avx2_unless_set():
+    """The same numbers on every x86 CPU (stepnft/__init__.py): oneDNN's and ATen's AVX-512
+    kernels sum in another order. A value the user set is kept."""
+    code = "import os, stepnft; print(os.environ['ONEDNN_MAX_CPU_ISA'], os.environ['ATEN_CPU_CAPABILITY'])"
+    assert _run(code) == "AVX2 avx2"
+    assert _run(code, ONEDNN_MAX_CPU_ISA="AVX512_CORE", ATEN_CPU_CAPABILITY="default") == "AVX512_CORE default"
+
+
+def test_torch_dispatches_no_avx512_kernels_after_importing_stepnft():
+    """ATen reads the cap: on an AVX-512 CPU it reports AVX2 (on others, what the CPU has, never more)."""
+    code = ("import stepnft, torch; torch.randn(64).exp().sum(); "
+            "print(torch.backends.cpu.get_cpu_capability())")
+    assert _run(code) != "AVX512"
