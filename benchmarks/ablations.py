@@ -34,7 +34,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from provenance import command, commit
+from provenance import command, commit, cpu, packages
 
 
 @dataclass(frozen=True)
@@ -241,7 +241,7 @@ def table(args: argparse.Namespace, out: Path) -> dict:
     (out / "ablations.md").write_text(text)
     (out / "ablations.json").write_text(json.dumps({"default": ref, "sft": sft, "ablations": results,
                                                     "env_steps": args.env_steps, "seeds": args.seeds,
-                                                    "commit": commit(), "command": command()}, indent=1))
+                                                    "commit": commit(), "command": command(), "packages": packages(), "cpu": cpu()}, indent=1))
     for name in ("comparison.md", "comparison.csv", "comparison.png"):
         if (work / name).exists():
             shutil.copy(work / name, out / name)

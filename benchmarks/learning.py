@@ -31,7 +31,7 @@ from pathlib import Path
 
 import yaml
 
-from provenance import command, commit, packages
+from provenance import command, commit, cpu, packages
 
 from stepnft.config import DEFAULT_TASKS, TrainConfig, from_dict, load_config, read_yaml, to_dict
 from stepnft.evaluate import format_ci
@@ -123,7 +123,10 @@ def recorded_runs(folder: Path, args: argparse.Namespace | None = None) -> dict[
     if args is not None and (any(recorded["args"].get(k) != getattr(args, k) for k in RUN_ARGS)
                              or recorded.get("packages") != packages()):
         return {}
-    return {r["seed"]: {k: v for k, v in r.items() if k not in ("seed", "run_dir")} for r in recorded["runs"]}
+    here = cpu()["aten_capability"] if args is not None else None
+    return {r["seed"]: {k: v for k, v in r.items() if k not in ("seed", "run_dir")} for r in recorded["runs"]
+            # a seed whose torch computed with other kernels (AVX-512 vs AVX2) gives other numbers: run it again
+            if here is None or r.get("cpu", {}).get("aten_capability", here) == here}
 
 
 def finished_runs(folder: Path, seeds: list[int]) -> dict[int, dict]:
@@ -221,6 +224,7 @@ def main(argv=None) -> dict:
             summary = train(cfg, resume=resume)
             summary["wall_clock_s_this_session" if resume else "wall_clock_s"] = time.perf_counter() - start
             summary["commit"] = ran_on  # the code this seed ran on (this session's part of it, if resumed)
+            summary["cpu"] = cpu()  # the CPU and the kernels torch used (this session's part, if resumed)
             done.write_text(json.dumps(summary, indent=2))
         summary = json.loads(done.read_text())
         runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary, "curves": curves(Path(cfg.run_dir), tasks)})
@@ -237,7 +241,7 @@ def main(argv=None) -> dict:
     print(text)
     (out / "learning.md").write_text(text + "\n")
     plot(out, runs, tasks)
-    result = {"command": command(), "commit": commit(), "packages": packages(), "args": vars(args), "tasks": tasks, "runs": runs,
+    result = {"command": command(), "commit": commit(), "packages": packages(), "cpu": cpu(), "args": vars(args), "tasks": tasks, "runs": runs,
               "average": {w: [r["average"][w] for r in runs] for w in ("before", "after", "best")}}
     (out / "learning.json").write_text(json.dumps(result, indent=2))
     return result

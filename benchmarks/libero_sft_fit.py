@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from provenance import command, commit  # noqa: E402
+from provenance import command, commit, cpu  # noqa: E402
 
 DIMS = ("x", "y", "z", "rx", "ry", "rz", "grip")
 
@@ -149,7 +149,7 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "fit.md").write_text(text)
-    (out / "fit.json").write_text(json.dumps({"command": command(), "commit": commit(), "rows": rows,
+    (out / "fit.json").write_text(json.dumps({"command": command(), "commit": commit(), "cpu": cpu(), "rows": rows,
                                               "mean_abs_action": mean_abs}, indent=2))
     return 0
 

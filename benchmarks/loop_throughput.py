@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from provenance import command, commit
+from provenance import command, commit, cpu, packages
 
 from stepnft.algos.base import make_algorithm
 from stepnft.config import load_config
@@ -184,7 +184,7 @@ def main(argv=None) -> dict:
     summary = json.loads((run / "summary.json").read_text())
     from stepnft.envs import base
 
-    record = {"command": command(), "commit": commit(), "args": vars(args),
+    record = {"command": command(), "commit": commit(), "packages": packages(), "cpu": cpu(), "args": vars(args),
               "lanes": base.LANES, "envs_per_task": cfg.env.envs_per_task,
               "cameras": list(cfg.env.cameras), "rows": rows, "run_time_s": summary.get("time_s"),
               "run_env_steps": summary.get("env_steps"), "load_average_1min": os.getloadavg()[0],

@@ -1,10 +1,13 @@
 """What a results folder records about how it was made: the exact command, the commit it ran on
-(``scripts/stale_results.py`` reads the commit) and the versions of the packages its numbers
-depend on (the same code gave another SFT start with other versions, before constraints.txt pinned them)."""
+(``scripts/stale_results.py`` reads the commit), the versions of the packages its numbers
+depend on (the same code gave another SFT start with other versions, before constraints.txt pinned them)
+and the CPU kernels torch used (ATen's AVX-512 kernels moved the main command's RL run,
+docs/experiments.md §14)."""
 
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -41,3 +44,19 @@ def packages(names: tuple[str, ...] = NUMERIC_PACKAGES) -> dict[str, str | None]
         except PackageNotFoundError:
             found[name] = None
     return found
+
+
+def cpu() -> dict[str, str | None]:
+    """The CPU model and the instruction sets torch computed with in this process: ATen's
+    dispatch level (``AVX2`` under stepnft's cap, ``AVX512`` if torch ran an op before stepnft
+    was imported or the cap was lifted) and oneDNN's cap. Call it after importing stepnft."""
+    import torch
+
+    model = None
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith("model name")), None)
+    except OSError:  # not Linux
+        pass
+    return {"model": model or platform.processor() or None, "aten_capability": torch.backends.cpu.get_cpu_capability(),
+            "onednn_max_cpu_isa": os.environ.get("ONEDNN_MAX_CPU_ISA")}

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import yaml
 
-from provenance import command, commit
+from provenance import command, commit, cpu, packages
 
 FORMS = ("ppo", "ppo-one", "grpo", "grpo-one")
 BASES = {"ppo": "configs/ppo.yaml", "grpo": "configs/grpo.yaml"}
@@ -193,7 +193,7 @@ def table(args: argparse.Namespace, out: Path) -> dict:
     text = "\n".join(lines) + "\n"
     (out / "tuning.md").write_text(text)
     (out / "tuning.json").write_text(json.dumps({"trials": TRIALS, "success": results, "best": best,
-                                                 "commit": commit(), "command": command()}, indent=1))
+                                                 "commit": commit(), "command": command(), "packages": packages(), "cpu": cpu()}, indent=1))
     print(text)
     return results
 

@@ -227,7 +227,7 @@ def main() -> None:
     done_rows = []
     if out is not None and (out / "compute.json").is_file():  # an interrupted table: keep its rows
         done_rows = [r for r in json.loads((out / "compute.json").read_text())["rows"] if "error" not in r]
-    results = {"commit": provenance.commit(), "command": provenance.command(), "size": args.size, "calls": args.calls,
+    results = {"commit": provenance.commit(), "command": provenance.command(), "packages": provenance.packages(), "cpu": provenance.cpu(), "size": args.size, "calls": args.calls,
                "device": args.device, "torch": torch.__version__, "threads": args.threads,
                "machine": platform.processor() or platform.machine(), "load_average_at_start": list(os.getloadavg()),
                "rows": []}

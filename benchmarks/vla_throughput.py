@@ -178,7 +178,7 @@ def main() -> None:
         parser.error(f"stepnft is imported from {Path(stepnft.__file__).parent}, not from this checkout: "
                      f"run with PYTHONPATH={provenance.ROOT}")
     torch.set_num_threads(args.threads)
-    results = {"commit": provenance.commit(), "command": provenance.command(), "mode": args.mode,
+    results = {"commit": provenance.commit(), "command": provenance.command(), "packages": provenance.packages(), "cpu": provenance.cpu(), "mode": args.mode,
                "torch": torch.__version__, "threads": args.threads,
                "machine": platform.processor() or platform.machine(), "device": "cpu",
                "load_average_at_start": list(os.getloadavg()), "sizes": {}}

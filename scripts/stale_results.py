@@ -16,7 +16,7 @@ of them). Exit code 0; with ``--fail`` 1 when any folder is stale.
 The same code gives other numbers on other versions of numpy, scipy, MuJoCo, ... (docs/experiments.md
 §14), so each folder also gets an *environment* column: ``pinned`` when the ``packages`` its JSON
 files record (benchmarks/provenance.py) are the versions constraints.txt pins, ``differs`` (which)
-otherwise, ``unrecorded`` when it records none (made before the pins: the figures may not come
+otherwise (also when a run records torch's AVX-512 kernels, ``cpu`` in its JSON), ``unrecorded`` when it records none (made before the pins: the figures may not come
 back on a pinned checkout even where the code is current). This column does not make a folder stale.
 
     python scripts/stale_results.py            # every folder, stale ones first
@@ -67,14 +67,34 @@ def pinned_versions(root: Path) -> dict[str, str]:
             (line.split("#")[0].partition("==") for line in lines) if version.strip()}
 
 
+def recorded_kernels(folder: Path) -> set[str]:
+    """The ATen dispatch levels (``AVX2``, ``AVX512``, ...) the folder's JSON files record, for the
+    whole file (``cpu``) or per run (``runs[i].cpu``, benchmarks/learning.py)."""
+    levels = set()
+    for path in sorted(folder.glob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except (ValueError, OSError):
+            continue
+        if not isinstance(data, dict):
+            continue
+        runs = data.get("runs") if isinstance(data.get("runs"), list) else []
+        for cpu in [data.get("cpu")] + [r.get("cpu") for r in runs if isinstance(r, dict)]:
+            if isinstance(cpu, dict) and cpu.get("aten_capability"):
+                levels.add(cpu["aten_capability"])
+    return levels
+
+
 def environment(root: Path, folder: Path) -> str:
-    """``pinned``, ``unrecorded`` or ``differs: name have!=pin, ...`` (local tags like +cpu ignored)."""
+    """``pinned``, ``unrecorded`` or ``differs: name have!=pin, ...`` (local tags like +cpu ignored;
+    ``ATen AVX512`` when a run computed with torch's AVX-512 kernels, which give other numbers)."""
     packages = recorded_packages(folder)
     if packages is None:
         return "unrecorded"
     pins = pinned_versions(root)
     off = [f"{name} {version}!={pins[name.lower()]}" for name, version in sorted(packages.items())
            if version and name.lower() in pins and version.split("+")[0] != pins[name.lower()]]
+    off += ["ATen AVX512"] if "AVX512" in recorded_kernels(folder) else []
     return "differs: " + ", ".join(off) if off else "pinned"
 
 

@@ -26,3 +26,23 @@ def test_torch_dispatches_no_avx512_kernels_after_importing_stepnft():
     code = ("import stepnft, torch; torch.randn(64).exp().sum(); "
             "print(torch.backends.cpu.get_cpu_capability())")
     assert _run(code) != "AVX512"
+
+
+def _has_avx512() -> bool:
+    return _run("import torch; print(torch.backends.cpu.get_cpu_capability())") == "AVX512"  # torch alone: no cap
+
+
+def test_importing_stepnft_after_a_torch_op_warns_on_an_avx512_cpu():
+    """ATen fixes its kernels when an op first runs: a script that computes before importing
+    stepnft keeps AVX-512 and is told so; importing torch first (no op yet) is fine, and a value
+    the user set is not second-guessed."""
+    import pytest
+
+    if not _has_avx512():
+        pytest.skip("this CPU has no AVX-512: ATen never picks it, so there is nothing to warn about")
+    warn = "import warnings, torch; warnings.simplefilter('error'); {op}import stepnft; print('ok')"
+    late = subprocess.run([sys.executable, "-c", warn.format(op="torch.ones(3) + 1; ")], capture_output=True, text=True,
+                          env={k: v for k, v in os.environ.items() if k != "ATEN_CPU_CAPABILITY"})
+    assert late.returncode != 0 and "import stepnft before torch computes anything" in late.stderr
+    assert _run(warn.format(op="")) == "ok"
+    assert _run(warn.format(op="torch.ones(3) + 1; "), ATEN_CPU_CAPABILITY="avx512") == "ok"

@@ -82,6 +82,8 @@ def test_the_result_records_the_numeric_packages_versions(learning, tmp_path, mo
     import torch
     assert result["packages"]["torch"] == torch.__version__
     assert set(result["packages"]) >= {"numpy", "mujoco", "metaworld"}
+    assert result["cpu"]["aten_capability"] == torch.backends.cpu.get_cpu_capability() != "AVX512"  # stepnft's cap
+    assert result["cpu"]["onednn_max_cpu_isa"] == "AVX2"
 
 
 def test_a_recorded_seed_from_other_package_versions_is_rerun(learning, tmp_path, monkeypatch):
@@ -95,3 +97,18 @@ def test_a_recorded_seed_from_other_package_versions_is_rerun(learning, tmp_path
         learning.main([*args, "--seeds", "0", "--out", str(tmp_path / "mine")])
     assert seen == [0]
     assert learning.recorded_runs(tmp_path / "mine")[0]["average"]["after"] == 0.7  # still readable for pairing
+
+
+def test_a_recorded_seed_computed_with_other_kernels_is_rerun(learning, tmp_path, monkeypatch):
+    """ATen's AVX-512 kernels moved the main command's RL run (docs/experiments.md §14): a seed
+    recorded with another dispatch level runs again; one recorded before the level was kept is reused."""
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    args = ["--config", config, "--tasks", *TASKS]
+    avx512 = {**run(0, 0.4, 0.7), "cpu": {"aten_capability": "AVX512"}}
+    here = {**run(1, 0.4, 0.8), "cpu": learning.cpu()}
+    publish(tmp_path / "mine", args, [avx512, here, run(2, 0.5, 0.9)], learning)
+    assert sorted(learning.recorded_runs(tmp_path / "mine", learning.parse_args(args + ["--out", str(tmp_path / "mine")]))) == [1, 2]
+    seen = would_train(learning, monkeypatch)
+    with pytest.raises(RuntimeError, match="would train"):
+        learning.main([*args, "--seeds", "1", "2", "0", "--out", str(tmp_path / "mine")])
+    assert seen == [0]

@@ -126,13 +126,16 @@ def test_the_environment_column_compares_recorded_packages_with_the_pins(tmp_pat
     git(tmp_path, "commit", "-qm", "code")
     head = git(tmp_path, "rev-parse", "--short", "HEAD")
     results = tmp_path / "benchmarks" / "results"
-    recorded = {"pinned": {"numpy": "2.4.6", "torch": "2.13.0+cpu", "mujoco": "3.3.0"},
-                "other": {"numpy": "2.3.1", "torch": "2.13.0+cpu"}, "before_pins": None}
-    for name, packages in recorded.items():
+    pins = {"numpy": "2.4.6", "torch": "2.13.0+cpu", "mujoco": "3.3.0"}
+    recorded = {"pinned": {"packages": pins, "cpu": {"aten_capability": "AVX2"}},
+                "other": {"packages": {"numpy": "2.3.1", "torch": "2.13.0+cpu"}}, "before_pins": {},
+                # one seed of a learning table computed with ATen's AVX-512 kernels
+                "avx512": {"packages": pins, "runs": [{"cpu": {"aten_capability": "AVX2"}}, {"cpu": {"aten_capability": "AVX512"}}]}}
+    for name, fields in recorded.items():
         (results / name).mkdir(parents=True)
-        (results / name / "r.json").write_text(json.dumps({"commit": head, **({"packages": packages} if packages else {})}))
+        (results / name / "r.json").write_text(json.dumps({"commit": head, **fields}))
     git(tmp_path, "add", "-A")
     git(tmp_path, "commit", "-qm", "results")
     assert environments(tmp_path) == {"before_pins": "unrecorded", "other": "differs: numpy 2.3.1!=2.4.6",
-                                      "pinned": "pinned"}
+                                      "pinned": "pinned", "avx512": "differs: ATen AVX512"}
     assert not any(stale(tmp_path).values())  # the environment column alone makes nothing stale
