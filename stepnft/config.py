@@ -63,9 +63,10 @@ class EnvConfig(Settings):
     MUJOCO_GL=egl; the policy's --policy.cameras must match."""
     image_size: Annotated[int, Range(ge=8, le=480)] = 64
     """Side in pixels of the square camera images."""
-    state_obs: Literal["full", "proprio"] = "full"
+    state_obs: Literal["full", "proprio", "interest"] = "full"
     """State observation: full (MetaWorld's 39 values, object and goal positions included) or
-    proprio (hand xyz and gripper opening only: for camera policies; --policy.state-dim 4)."""
+    proprio (hand xyz and gripper opening only: for camera policies; --policy.state-dim 4).
+    LIBERO: full 64, proprio 8, interest 22 (the proprioception and the objects of interest' poses)."""
     randomize: list[str] = field(default_factory=list)
     """Perturbations randomised in every training episode, from their training ranges (never
     the held-out ones the suites use): suite names (vision, semantic, execution) or single

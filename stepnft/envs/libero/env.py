@@ -12,7 +12,10 @@ Observations:
                pose of each of the task's objects (position (3), quaternion xyzw (4); the task's
                objects of interest first, then the others in the BDDL file's order; zeros in
                the slots of a task with fewer than 8 objects), what a state policy needs to see
-               where things are (the fixtures' joints, e.g. a drawer's, are not included)
+               where things are (the fixtures' joints, e.g. a drawer's, are not included). With
+               ``state_obs="interest"`` float32 [22]: the proprioception and the first two
+               slots only (the objects of interest: what is moved and where it goes); the other
+               objects' poses let a few demonstrations be overfit (docs/libero.md)
     ``image``  uint8 [V, 3, S, S] with ``cameras`` (``agentview``, ``robot0_eye_in_hand``), S =
                ``image_size``: upright (rotated 180 degrees from robosuite's raw frame, as OpenVLA
                and LeRobot feed it), with shadows, as LIBERO's datasets were rendered
@@ -51,6 +54,10 @@ OBJECT_SLOTS = 8
 """Object poses in the full state: the most objects of any LIBERO task (libero_90 has 8)."""
 FULL_STATE_DIM = STATE_DIM + 7 * OBJECT_SLOTS
 """The proprioception and the objects' poses (``state_obs="full"``)."""
+INTEREST_SLOTS = 2
+"""Object slots in the ``interest`` state: LIBERO's objects of interest (what is moved, where to)."""
+STATE_DIMS = {"proprio": STATE_DIM, "interest": STATE_DIM + 7 * INTEREST_SLOTS, "full": FULL_STATE_DIM}
+"""Size of each ``state_obs``; each is a prefix of the full state."""
 ACTION_DIM = 7
 CONTROL_HZ = 20
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -107,8 +114,9 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         unknown = [c for c in cameras if c not in CAMERAS]
         if unknown:
             raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(CAMERAS)}")
-        if state_obs not in ("full", "proprio"):
-            raise ValueError(f"LIBERO's state_obs is full (proprioception and object poses) or proprio, got {state_obs!r}")
+        if state_obs not in STATE_DIMS:
+            raise ValueError(f"LIBERO's state_obs is full (proprioception and every object's pose), interest (and the "
+                             f"objects of interest only) or proprio, got {state_obs!r}")
         if perturbations:
             raise ValueError("LIBERO has no perturbation suites or training randomisation (docs/ood.md is MetaWorld's)")
         self.task = tasks[task]
@@ -124,7 +132,7 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         self._init_states = initial_states(task)
         self.state_obs = state_obs
 
-        state_dim = FULL_STATE_DIM if state_obs == "full" else STATE_DIM
+        state_dim = STATE_DIMS[state_obs]
         spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)}
         if self._cameras:
             spaces["image"] = gym.spaces.Box(0, 255, (len(self._cameras), 3, image_size, image_size), np.uint8)
@@ -207,8 +215,8 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
 
     def _observe(self, raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         obs = {"state": proprio_state(raw)}
-        if self.state_obs == "full":
-            obs["state"] = np.concatenate([obs["state"], object_poses(raw, self._objects)])
+        if self.state_obs != "proprio":
+            obs["state"] = np.concatenate([obs["state"], object_poses(raw, self._objects)])[: STATE_DIMS[self.state_obs]]
         if self._cameras:
             size = self._image_size
             obs["image"] = np.stack([self._render(camera, size, size).transpose(2, 0, 1) for camera in self._cameras])
