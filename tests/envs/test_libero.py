@@ -15,7 +15,7 @@ from stepnft.cli import main
 from stepnft.data.demos import demos_to_chunks, load_demos
 from stepnft.envs import get_simulator, make_vec_env
 from stepnft.envs.libero.datasets import load_dataset
-from stepnft.envs.libero.scripted import record_demos
+from stepnft.envs.libero.scripted import POSITION_GAIN, record_demos, record_episode
 from stepnft.envs.libero.suites import all_tasks, initial_states
 
 SOUP = "pick_up_the_alphabet_soup_and_place_it_in_the_basket"
@@ -112,6 +112,25 @@ def test_the_interest_state_is_the_full_state_up_to_the_objects_of_interest(sim,
             np.testing.assert_array_equal(part["state"], full["state"][:22])
     finally:
         small.close()
+
+
+def test_noisy_demonstrations_keep_the_controllers_actions_for_the_states_visited(sim):
+    """DART: with ``action_noise`` the hand goes elsewhere, and every recorded action is still
+    the controller's for the state recorded beside it (here its first phase: 12 cm above the can)."""
+    one = sim.make_env(SOUP, n_exec=1, max_episode_steps=280, seed=0, state_obs="interest")
+    try:
+        clean, noisy = record_episode(one, 0), record_episode(one, 0, action_noise=0.3)
+        obs, _ = one.reset(seed=0)
+    finally:
+        one.close()
+    assert clean is not None and noisy is not None  # the controller recovers from the noise
+    assert not np.allclose(noisy["ee_pos"][5], clean["ee_pos"][5], atol=1e-3)
+    target = obs["state"][8:11] + np.array([0.0, 0.0, 0.12])
+    expected = np.clip(POSITION_GAIN * (target - noisy["ee_pos"][:10]), -1.0, 1.0)
+    np.testing.assert_allclose(noisy["actions"][:10, :3], expected, atol=2e-3)
+    assert np.all(noisy["actions"][:, 3:6] == 0) and set(np.unique(noisy["actions"][:, 6])) <= {-1.0, 1.0}
+    with pytest.raises(ValueError, match="action_noise"):
+        record_demos(SOUP, 1, "/nonexistent", action_noise=-0.1)
 
 
 def test_chunk_contract(env):

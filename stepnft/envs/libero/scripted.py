@@ -7,7 +7,10 @@ simulator (privileged information no policy sees): above the object, down, close
 lift, over the basket, open. Tried from initial states 0-3 of each task, it succeeded on all
 four for seven objects (alphabet soup, bbq sauce, tomato sauce, butter, milk, chocolate pudding,
 orange juice), on one for the cream cheese and on none for the ketchup and the salad dressing;
-failed attempts are discarded. The files are in LIBERO's own format
+failed attempts are discarded. With ``--action-noise s`` the executed translation gets Gaussian
+noise of scale ``s`` while the file keeps the controller's own action for the state it was in
+(DART: the demonstrations then show how to recover from the small errors a cloned policy
+makes, which plain demonstrations never visit). The files are in LIBERO's own format
 (``stepnft.envs.libero.datasets``), so SFT reads them exactly as it reads the published ones:
 
     python -m stepnft.envs.libero.scripted --tasks pick_up_the_alphabet_soup_and_place_it_in_the_basket \\
@@ -36,10 +39,12 @@ def _plan(obj: np.ndarray, basket: np.ndarray) -> list[tuple[np.ndarray | None, 
             (basket + 0.15 * up, GRIPPER_CLOSED, 20), (None, GRIPPER_OPEN, 40)]
 
 
-def record_episode(env, seed: int) -> dict | None:
+def record_episode(env, seed: int, action_noise: float = 0.0) -> dict | None:
     """One scripted episode on a one-action ``LiberoChunkEnv`` of a libero_object task from
-    initial state ``seed``: LIBERO's per-step arrays (observations before each action), or None
-    if it failed."""
+    initial state ``seed``: LIBERO's per-step arrays (observations before each action, the
+    controller's noise-free actions), or None if it failed. ``action_noise``: scale of the
+    Gaussian noise added to the executed translation (drawn from a stream seeded by ``seed``)."""
+    rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     robosuite_env = env._env.env
     obj_name, basket_name = env._env.obj_of_interest[:2]
@@ -69,7 +74,10 @@ def record_episode(env, seed: int) -> dict | None:
                 # LIBERO's files hold robosuite's raw frames: [H, W, 3], rotated by 180 degrees
                 frames[key].append(view.transpose(1, 2, 0)[::-1, ::-1])
             record["actions"].append(action)
-            _, _, terminated, truncated, info = env.step(action[None])
+            executed = action.copy()
+            if action_noise > 0:
+                executed[:3] = np.clip(executed[:3] + rng.normal(0.0, action_noise, 3), -1.0, 1.0)
+            _, _, terminated, truncated, info = env.step(executed[None])
             if terminated or truncated:
                 break
         if terminated or truncated:
@@ -81,9 +89,13 @@ def record_episode(env, seed: int) -> dict | None:
 
 
 def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: int | None = None,
-                 cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand"), image_size: int = 128) -> Path:
+                 cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand"), image_size: int = 128,
+                 action_noise: float = 0.0) -> Path:
     """Scripted demonstrations of ``task`` until ``episodes`` succeed (initial states 0, 1, ...)
-    into ``out_dir/<suite>/<task>_demo.hdf5``; returns the file."""
+    into ``out_dir/<suite>/<task>_demo.hdf5``; returns the file. ``action_noise``: see
+    :func:`record_episode`."""
+    if action_noise < 0:
+        raise ValueError(f"action_noise is a standard deviation, >= 0; got {action_noise}")
     from stepnft.envs.libero import LIBERO
     from stepnft.envs.libero.suites import all_tasks
 
@@ -99,7 +111,7 @@ def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: in
             if attempts == max_attempts:
                 raise ValueError(f"the scripted pick-and-place succeeded on only {len(demos)} of {attempts} initial "
                                  f"states of {task}: ask for fewer episodes")
-            demo = record_episode(env, attempts)
+            demo = record_episode(env, attempts, action_noise)
             attempts += 1
             if demo is not None:
                 demos.append(demo)
@@ -120,10 +132,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cameras", nargs="*", default=["agentview", "robot0_eye_in_hand"],
                         help="cameras whose frames are stored (none: no frames)")
     parser.add_argument("--image-size", type=int, default=128, help="side of the stored frames (LIBERO's: 128)")
+    parser.add_argument("--action-noise", type=float, default=0.0,
+                        help="std of the Gaussian noise on the executed translation; the files keep the noise-free "
+                             "actions (DART: demonstrations of recoveries). Default 0: none")
     args = parser.parse_args(argv)
+    if args.action_noise < 0:
+        parser.error(f"--action-noise must be >= 0, got {args.action_noise}")
     for task in LIBERO().validate_tasks(args.tasks):
         try:
-            path = record_demos(task, args.episodes, args.out, cameras=tuple(args.cameras), image_size=args.image_size)
+            path = record_demos(task, args.episodes, args.out, cameras=tuple(args.cameras), image_size=args.image_size,
+                                action_noise=args.action_noise)
             print(f"wrote {path}")
         except ValueError as err:
             print(f"skipped {task}: {err}")
