@@ -133,6 +133,20 @@ def test_noisy_demonstrations_keep_the_controllers_actions_for_the_states_visite
         record_demos(SOUP, 1, "/nonexistent", action_noise=-0.1)
 
 
+def test_a_random_placement_is_none_of_the_benchmark_initial_states(env):
+    """``reset(options={"placement": k})``: LIBERO's own random placement with seed k, the same
+    every time, other for another k, and off the 50 evaluation states (where the scripted
+    recorder's demonstrations start with --first-placement)."""
+    first = env.reset(options={"placement": 1000})[0]["state"]
+    again = env.reset(options={"placement": 1000})[0]["state"]
+    other = env.reset(options={"placement": 1001})[0]["state"]
+    np.testing.assert_array_equal(first, again)
+    xy = np.r_[8:10, 15:17, 22:24, 29:31]  # x, y of the can, the basket and two other objects
+    assert np.linalg.norm(first[xy] - other[xy]) > 1e-3
+    benchmark = np.stack([env.reset(seed=k)[0]["state"][xy] for k in range(50)])
+    assert np.min(np.linalg.norm(benchmark - first[xy], axis=1)) > 1e-3
+
+
 def test_chunk_contract(env):
     check_chunk_contract(env, 7)
     assert env.max_episode_steps == 280

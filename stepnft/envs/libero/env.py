@@ -157,7 +157,11 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Starts an episode from initial state ``seed % 50`` (see the module doc).
-        ``options={"idle": True}``: sit a batch step out (see ``stepnft.envs.base``)."""
+        ``options={"idle": True}``: sit a batch step out (see ``stepnft.envs.base``);
+        ``{"placement": k}``: from LIBERO's own random object placement drawn with seed ``k``
+        instead (the distribution the 50 states were drawn from, but none of them: for
+        demonstrations that must not start where evaluation does); ``{"init_state": s}``: from
+        the flattened MuJoCo state ``s``."""
         options = options or {}
         if options.get("idle"):
             if self._obs is None:
@@ -167,17 +171,19 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         super().reset(seed=seed)
         index = seed % len(self._init_states) if seed is not None else int(self.np_random.integers(len(self._init_states)))
         state = options.get("init_state", self._init_states[index])
+        placement = options.get("placement")
         # LIBERO's reset draws object placements from numpy's global generator; the initial state
         # overwrites them, but seed it anyway (and restore it) so nothing depends on the past.
         global_rng = np.random.get_state()
-        np.random.seed(index)
+        np.random.seed(index if placement is None else int(placement))
         try:
-            self._env.reset()
+            raw = self._env.reset()
         finally:
             np.random.set_state(global_rng)
         for robot in self._env.robots:  # a soft reset leaves the gripper's command ramp where it was
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
-        raw = self._env.set_init_state(np.asarray(state, dtype=np.float64))
+        if placement is None:
+            raw = self._env.set_init_state(np.asarray(state, dtype=np.float64))
         for _ in range(0 if "init_state" in options else self.settle_steps):
             raw, _, _, _ = self._env.step(SETTLE_ACTION)
         self._start_episode()

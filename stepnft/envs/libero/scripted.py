@@ -39,13 +39,15 @@ def _plan(obj: np.ndarray, basket: np.ndarray) -> list[tuple[np.ndarray | None, 
             (basket + 0.15 * up, GRIPPER_CLOSED, 20), (None, GRIPPER_OPEN, 40)]
 
 
-def record_episode(env, seed: int, action_noise: float = 0.0) -> dict | None:
+def record_episode(env, seed: int, action_noise: float = 0.0, placement: int | None = None) -> dict | None:
     """One scripted episode on a one-action ``LiberoChunkEnv`` of a libero_object task from
     initial state ``seed``: LIBERO's per-step arrays (observations before each action, the
     controller's noise-free actions), or None if it failed. ``action_noise``: scale of the
-    Gaussian noise added to the executed translation (drawn from a stream seeded by ``seed``)."""
+    Gaussian noise added to the executed translation (drawn from a stream seeded by ``seed``).
+    ``placement``: start from LIBERO's random object placement with this seed instead (none of
+    the 50 evaluation states)."""
     rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
+    env.reset(seed=seed, options=None if placement is None else {"placement": placement})
     robosuite_env = env._env.env
     obj_name, basket_name = env._env.obj_of_interest[:2]
     raw = robosuite_env._get_observations()
@@ -90,10 +92,10 @@ def record_episode(env, seed: int, action_noise: float = 0.0) -> dict | None:
 
 def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: int | None = None,
                  cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand"), image_size: int = 128,
-                 action_noise: float = 0.0) -> Path:
-    """Scripted demonstrations of ``task`` until ``episodes`` succeed (initial states 0, 1, ...)
-    into ``out_dir/<suite>/<task>_demo.hdf5``; returns the file. ``action_noise``: see
-    :func:`record_episode`."""
+                 action_noise: float = 0.0, first_placement: int | None = None) -> Path:
+    """Scripted demonstrations of ``task`` until ``episodes`` succeed (initial states 0, 1, ...,
+    or, with ``first_placement`` k, LIBERO's random placements seeded k, k + 1, ...) into
+    ``out_dir/<suite>/<task>_demo.hdf5``; returns the file. ``action_noise``: see :func:`record_episode`."""
     if action_noise < 0:
         raise ValueError(f"action_noise is a standard deviation, >= 0; got {action_noise}")
     from stepnft.envs.libero import LIBERO
@@ -111,7 +113,8 @@ def record_demos(task: str, episodes: int, out_dir: str | Path, max_attempts: in
             if attempts == max_attempts:
                 raise ValueError(f"the scripted pick-and-place succeeded on only {len(demos)} of {attempts} initial "
                                  f"states of {task}: ask for fewer episodes")
-            demo = record_episode(env, attempts, action_noise)
+            placement = None if first_placement is None else first_placement + attempts
+            demo = record_episode(env, attempts, action_noise, placement)
             attempts += 1
             if demo is not None:
                 demos.append(demo)
@@ -135,13 +138,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--action-noise", type=float, default=0.0,
                         help="std of the Gaussian noise on the executed translation; the files keep the noise-free "
                              "actions (DART: demonstrations of recoveries). Default 0: none")
+    parser.add_argument("--first-placement", type=int, default=None,
+                        help="start from LIBERO's random object placements seeded N, N+1, ... instead of the 50 "
+                             "benchmark initial states (keeps demonstrations off the evaluation states)")
     args = parser.parse_args(argv)
     if args.action_noise < 0:
         parser.error(f"--action-noise must be >= 0, got {args.action_noise}")
     for task in LIBERO().validate_tasks(args.tasks):
         try:
             path = record_demos(task, args.episodes, args.out, cameras=tuple(args.cameras), image_size=args.image_size,
-                                action_noise=args.action_noise)
+                                action_noise=args.action_noise, first_placement=args.first_placement)
             print(f"wrote {path}")
         except ValueError as err:
             print(f"skipped {task}: {err}")
