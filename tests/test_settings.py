@@ -32,7 +32,7 @@ BAD_VALUES = [
     (TrainConfig, "env_step_budget", 0, "env_step_budget must be an integer >= 1 or None, got 0"),
     (EnvConfig, "envs_per_task", 0, "env.envs_per_task must be an integer >= 1, got 0"),
     (EnvConfig, "image_size", 4, "env.image_size must be an integer in [8, 480], got 4"),
-    (EnvConfig, "state_obs", "pixels", "env.state_obs must be one of full, proprio, got 'pixels'"),
+    (EnvConfig, "state_obs", "pixels", "env.state_obs must be one of full, proprio, interest, got 'pixels'"),
     (EnvConfig, "terminate_on_success", 1, "env.terminate_on_success must be true or false, got 1"),
     (EnvConfig, "tasks", 5, "env.tasks must be a list of names, got 5"),
     (DemoConfig, "action_noise", math.nan, "demos.action_noise must be a finite number >= 0, got nan"),
