@@ -71,8 +71,9 @@ def test_options_are_checked(sim):
         sim.make_env(SOUP, cameras=["corner"])
     with pytest.raises(ValueError, match="no perturbation"):
         sim.make_env(SOUP, perturbations=["table_color"])
-    with pytest.raises(ValueError, match="state_obs"):
-        sim.state_dim_for("objects")
+    for check in (lambda: sim.state_dim_for("objects"), lambda: sim.make_env(SOUP, state_obs="objects")):
+        with pytest.raises(ValueError, match="state_obs is full .* got 'objects'"):
+            check()
     assert sim.state_dim_for("proprio") == 8 and sim.state_dim_for("full") == 64 and sim.state_dim_for("interest") == 22
     np.testing.assert_array_equal(sim.policy_state(np.arange(64.0), "interest"), np.arange(22.0))
     with pytest.raises(ValueError, match="--env.state-obs proprio"):  # demonstrations without simulator states

@@ -49,12 +49,9 @@ class LIBERO(Simulator):
     def state_dim_for(self, state_obs: str = "full") -> int:
         """``full``: the proprioception (8) and 8 object poses (56); ``interest``: the proprioception
         and the 2 objects of interest (22); ``proprio``: the 8 alone."""
-        from stepnft.envs.libero.env import STATE_DIMS
+        from stepnft.envs.libero.env import state_dim_for
 
-        if state_obs not in STATE_DIMS:
-            raise ValueError(f"LIBERO's state_obs is full (proprioception and every object's pose), interest (and the "
-                             f"objects of interest only) or proprio, got {state_obs!r}")
-        return STATE_DIMS[state_obs]
+        return state_dim_for(state_obs)
 
     def policy_state(self, states, state_obs: str = "full"):
         """As every simulator's, but demonstrations read from a LeRobot dataset (or HDF5 files

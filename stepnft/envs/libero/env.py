@@ -58,6 +58,15 @@ INTEREST_SLOTS = 2
 """Object slots in the ``interest`` state: LIBERO's objects of interest (what is moved, where to)."""
 STATE_DIMS = {"proprio": STATE_DIM, "interest": STATE_DIM + 7 * INTEREST_SLOTS, "full": FULL_STATE_DIM}
 """Size of each ``state_obs``; each is a prefix of the full state."""
+
+
+def state_dim_for(state_obs: str) -> int:
+    """Size of the state observation ``state_obs``, or a one-line error naming the choices."""
+    if state_obs not in STATE_DIMS:
+        raise ValueError(f"LIBERO's state_obs is full (proprioception and every object's pose), interest (and the "
+                         f"objects of interest only) or proprio, got {state_obs!r}")
+    return STATE_DIMS[state_obs]
+
 ACTION_DIM = 7
 CONTROL_HZ = 20
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -114,9 +123,7 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         unknown = [c for c in cameras if c not in CAMERAS]
         if unknown:
             raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(CAMERAS)}")
-        if state_obs not in STATE_DIMS:
-            raise ValueError(f"LIBERO's state_obs is full (proprioception and every object's pose), interest (and the "
-                             f"objects of interest only) or proprio, got {state_obs!r}")
+        state_dim = state_dim_for(state_obs)
         if perturbations:
             raise ValueError("LIBERO has no perturbation suites or training randomisation (docs/ood.md is MetaWorld's)")
         self.task = tasks[task]
@@ -132,7 +139,6 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         self._init_states = initial_states(task)
         self.state_obs = state_obs
 
-        state_dim = STATE_DIMS[state_obs]
         spaces = {"state": gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)}
         if self._cameras:
             spaces["image"] = gym.spaces.Box(0, 255, (len(self._cameras), 3, image_size, image_size), np.uint8)
