@@ -104,6 +104,10 @@ class DemoConfig(Settings):
     failed attempts are discarded and counted in the manifest."""
     action_noise: Annotated[float, Range(ge=0)] = 0.0
     """Std of Gaussian noise added to the expert's actions."""
+    dart: bool = False
+    """With ``action_noise``: execute the noisy action but record the expert's clean one for
+    each state visited (DART): the demonstrations then show how to recover from the drift the
+    noise causes, which a policy cloned from a few clean paths never sees."""
     successful_only: bool = True
     """Keep only the expert's successful episodes (False: keep every attempt, e.g. for a
     deliberately imperfect demonstrator)."""
@@ -114,6 +118,9 @@ class DemoConfig(Settings):
         wanted = max([self.episodes, *self.task_episodes.values()])
         if self.max_attempts is not None and self.max_attempts < wanted:
             raise self.fail(f"{{max_attempts}} must be >= the demonstrations wanted ({wanted})", self.max_attempts)
+        if self.dart and not self.action_noise > 0:
+            raise self.fail("{dart} records the expert's clean actions on the states its noisy ones reach: give "
+                            "{action_noise} > 0 too (e.g. 0.3)")
 
     def count(self, task: str) -> int:
         """Demonstrations used for ``task``."""

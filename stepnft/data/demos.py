@@ -76,6 +76,7 @@ def generate_demos(
     progress: bool = True,
     *,
     simulator,
+    dart: bool = False,
     max_attempts: int | None = None,
     successful_only: bool = True,
     cameras: Sequence[str] = (),
@@ -86,7 +87,9 @@ def generate_demos(
     With `successful_only=False` it keeps the first `episodes` attempts, failed or not.
 
     Episodes end at the first success or after `max_episode_steps` steps. Gaussian noise of
-    std `action_noise` is added to each expert action before clipping to [-1, 1].
+    std `action_noise` is added to each expert action before clipping to [-1, 1]; the noisy
+    action is recorded, or with `dart` the expert's clean one (DART: noise moves the states
+    visited, the labels stay the expert's).
     `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`. With
     `cameras`, every step's camera views are recorded too (``images``). `out_dir` must be new
     or empty; if generation fails, the files it wrote are removed again.
@@ -94,7 +97,7 @@ def generate_demos(
     sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
     tasks = sim.validate_tasks(tasks)
     max_attempts = 5 * episodes if max_attempts is None else max_attempts
-    _check_generation(episodes, max_attempts, seed, action_noise)
+    _check_generation(episodes, max_attempts, seed, action_noise, dart)
     out_dir = Path(out_dir)
     if (out_dir / "manifest.json").is_file():
         raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
@@ -102,7 +105,7 @@ def generate_demos(
     created = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # removed again if generation fails
     check_folder(out_dir, "demos", "--demos.path")
     settings = {"episodes_per_task": episodes, "max_attempts": max_attempts, "seed": seed, "action_noise": action_noise,
-                "max_episode_steps": max_episode_steps,
+                **({"dart": True} if dart else {}), "max_episode_steps": max_episode_steps,
                 **({"cameras": list(cameras), "image_size": image_size} if cameras else {})}
     entries, discarded = [], {}
     try:
@@ -122,7 +125,7 @@ def generate_demos(
     return out_dir
 
 
-def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise: float) -> None:
+def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise: float, dart: bool = False) -> None:
     if not 1 <= episodes <= MAX_EPISODES_PER_TASK:
         raise ValueError(f"episodes must be in [1, {MAX_EPISODES_PER_TASK}], got {episodes}")
     if not episodes <= max_attempts <= MAX_EPISODES_PER_TASK:
@@ -131,11 +134,14 @@ def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise:
         raise ValueError(f"seed must be >= 0, got {seed}")
     if not action_noise >= 0 or not np.isfinite(action_noise):
         raise ValueError(f"action_noise must be a finite number >= 0, got {action_noise}")
+    if dart and not action_noise > 0:
+        raise ValueError("dart records the expert's clean actions on states its noisy actions reach: give it an action "
+                         "noise (--demos.action-noise 0.3 --demos.dart)")
 
 
 def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, max_attempts: int, seed: int,
                  action_noise: float, max_episode_steps: int, successful_only: bool, written: list[dict],
-                 cameras: Sequence[str] = (), image_size: int = 64) -> int:
+                 cameras: Sequence[str] = (), image_size: int = 64, dart: bool = False) -> int:
     """Expert attempts at ``task`` until ``episodes_per_task`` are kept, each written to
     ``out_dir/task/`` and its manifest entry appended to ``written`` as soon as it is on disk;
     returns the number of attempts discarded."""
@@ -153,7 +159,7 @@ def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, 
                                  f"{task}: raise --demos.max-attempts above {max_attempts}, or ask for fewer than "
                                  f"{episodes_per_task} episodes (--demos.episodes); nothing was written")
             episode = _run_expert(env, sim.instruction(task), expert, noise_rng, action_noise,
-                                  demo_seed(seed, attempts), task)
+                                  demo_seed(seed, attempts), task, dart)
             attempts += 1
             if successful_only and not episode.success:
                 continue
@@ -177,7 +183,7 @@ def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, i
     generator = {"simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,
                  "episodes_per_task": settings["episodes_per_task"], "max_attempts": settings["max_attempts"],
                  "discarded": discarded, "seed": settings["seed"], "action_noise": settings["action_noise"],
-                 "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
+                 **({"dart": True} if settings.get("dart") else {}), "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
                  "simulator_version": package_version, "code": code_version(),
                  **{k: settings[k] for k in ("cameras", "image_size") if k in settings}}
     return {"format": FORMAT, "version": VERSION, "tasks": tasks, "episodes": entries, "generator": generator}
@@ -194,7 +200,7 @@ def _npz_bytes(episode: DemoEpisode) -> bytes:
 
 
 def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, action_noise: float, seed: int,
-                task: str) -> DemoEpisode:
+                task: str, dart: bool = False) -> DemoEpisode:
     obs, _ = env.reset(seed=seed)
     observations, actions, rewards, successes = [obs["state"]], [], [], []
     images = [obs["image"]] if "image" in obs else None
@@ -202,11 +208,12 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
     while not done:
         # A copy: some experts edit the observation they are given (MetaWorld's door-open and
         # door-close shift the handle position in place), which would change the recorded state.
-        action = np.asarray(expert.act({k: np.copy(v) for k, v in obs.items()}), dtype=np.float64)
-        if action_noise > 0:
-            action = action + noise_rng.normal(0.0, action_noise, size=action.shape)
+        clean = np.asarray(expert.act({k: np.copy(v) for k, v in obs.items()}), dtype=np.float64)
+        action = clean + noise_rng.normal(0.0, action_noise, size=clean.shape) if action_noise > 0 else clean
         action = np.clip(action, -1.0, 1.0).astype(np.float32)
         obs, reward, terminated, truncated, info = env.step(action[None])
+        if dart:
+            action = np.clip(clean, -1.0, 1.0).astype(np.float32)
         observations.append(obs["state"])
         if images is not None:
             images.append(obs["image"])
@@ -279,7 +286,7 @@ def load_or_generate_demos(demos_cfg, env_cfg, simulator, log: Callable[[str], N
         count = max(demos_cfg.count(t) for t in tasks)
         log(f"generating {count} demonstrations per task into {path}")
         generate_demos(tasks, count, path, seed=demos_cfg.seed, action_noise=demos_cfg.action_noise,
-                       max_episode_steps=env_cfg.max_episode_steps, simulator=simulator,
+                       dart=demos_cfg.dart, max_episode_steps=env_cfg.max_episode_steps, simulator=simulator,
                        max_attempts=demos_cfg.max_attempts, successful_only=demos_cfg.successful_only,
                        cameras=cameras, image_size=image_size)
     elif has_manifest:

@@ -93,6 +93,27 @@ def test_noisy_generation_is_reproducible_from_its_seed(tmp_path):
     assert np.abs(same_a).max() == 1.0
 
 
+def test_dart_visits_the_noisy_states_and_records_the_experts_clean_actions(tmp_path):
+    """DART: the same noise stream moves the hand as without it (same states), but each stored
+    action is the expert's own on the state it saw, not the noisy one that was executed."""
+    def generate(name, **kw):
+        out = generate_demos("reach-v3", 1, tmp_path / name, action_noise=0.3, max_episode_steps=20, progress=False,
+                             successful_only=False, simulator="metaworld", **kw)
+        return load_demos(out)[0], json.loads((out / "manifest.json").read_text())["generator"]
+
+    (noisy, plain), (dart, recorded) = generate("noisy"), generate("dart", dart=True)
+    np.testing.assert_array_equal(noisy.observations, dart.observations)
+    assert recorded["dart"] is True and "dart" not in plain
+    expert = get_simulator("metaworld").expert("reach-v3", 0)
+    clean = np.stack([np.clip(expert.act({"state": s.copy()}), -1, 1) for s in dart.observations[:-1]])
+    np.testing.assert_allclose(dart.actions, clean, atol=1e-6)
+    assert np.abs(noisy.actions - clean).max() > 0.1
+    with pytest.raises(ValueError, match="--demos.action-noise 0.3 --demos.dart"):
+        generate_demos("reach-v3", 1, tmp_path / "no_noise", dart=True, progress=False, simulator="metaworld")
+    with pytest.raises(ValueError, match=r"dart records .* give demos.action_noise > 0"):
+        DemoConfig(dart=True).check()
+
+
 def test_a_missing_expert_draws_more_states_until_n_successes(tmp_path):
     """Heavy action noise makes the expert miss: generation keeps drawing initial states,
     discards the failures, counts them, and gives up at the attempt cap."""
