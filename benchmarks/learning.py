@@ -230,10 +230,11 @@ def main(argv=None) -> dict:
         runs.append({"seed": seed, "run_dir": cfg.run_dir, **summary, "curves": curves(Path(cfg.run_dir), tasks)})
 
     steps = [float(r["env_steps"]) for r in runs]
+    own_counts = {t: n for t, n in demos.task_episodes.items() if t in tasks}  # the config's may name other tasks
     wall = [r.get("wall_clock_s", r.get("wall_clock_s_this_session", float("nan"))) for r in runs]
     text = (table(runs, tasks) + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
             f"3 test evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
-            f"seeds {args.seeds}; demos/task {demos.episodes} {demos.task_episodes or ''}; config {args.config}"
+            f"seeds {args.seeds}; demos/task {demos.episodes} {own_counts or ''}; config {args.config}"
             + (f" with {' '.join(args.set)}" if args.set else "") + f".\n\nCommand: `{command()}` (commit {commit()}).")
     if args.paired_with:
         text += "\n\nPaired differences of the final success (this minus the other, same seed and SFT start; the " \
