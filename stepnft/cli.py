@@ -245,7 +245,8 @@ def cmd_demos(argv: list[str]) -> int:
     episodes = max(args.demos.count(t) for t in tasks)
     # generate_demos checks the folder (new or empty) before it builds an env.
     path = generate_demos(tasks, episodes, args.demos.path, seed=args.demos.seed,
-                          action_noise=args.demos.action_noise, dart=args.demos.dart, max_episode_steps=args.env.max_episode_steps,
+                          action_noise=args.demos.action_noise, dart=args.demos.dart,
+                          max_episode_steps=args.env.max_episode_steps,
                           simulator=sim, max_attempts=args.demos.max_attempts, cameras=args.env.cameras,
                           image_size=args.env.image_size, successful_only=args.demos.successful_only)
     discarded = json.loads((path / "manifest.json").read_text())["generator"]["discarded"]

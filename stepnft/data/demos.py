@@ -183,9 +183,9 @@ def _manifest(sim, tasks: list[str], entries: list[dict], discarded: dict[str, i
     generator = {"simulator": sim.name, "state_dim": sim.state_dim, "action_dim": sim.action_dim,
                  "episodes_per_task": settings["episodes_per_task"], "max_attempts": settings["max_attempts"],
                  "discarded": discarded, "seed": settings["seed"], "action_noise": settings["action_noise"],
-                 **({"dart": True} if settings.get("dart") else {}), "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
+                 "max_episode_steps": settings["max_episode_steps"], "expert": f"{sim.name} scripted expert",
                  "simulator_version": package_version, "code": code_version(),
-                 **{k: settings[k] for k in ("cameras", "image_size") if k in settings}}
+                 **{k: settings[k] for k in ("dart", "cameras", "image_size") if k in settings}}
     return {"format": FORMAT, "version": VERSION, "tasks": tasks, "episodes": entries, "generator": generator}
 
 
@@ -209,15 +209,13 @@ def _run_expert(env, instruction: str, expert, noise_rng: np.random.Generator, a
         # A copy: some experts edit the observation they are given (MetaWorld's door-open and
         # door-close shift the handle position in place), which would change the recorded state.
         clean = np.asarray(expert.act({k: np.copy(v) for k, v in obs.items()}), dtype=np.float64)
-        action = clean + noise_rng.normal(0.0, action_noise, size=clean.shape) if action_noise > 0 else clean
-        action = np.clip(action, -1.0, 1.0).astype(np.float32)
-        obs, reward, terminated, truncated, info = env.step(action[None])
-        if dart:
-            action = np.clip(clean, -1.0, 1.0).astype(np.float32)
+        noisy = clean + noise_rng.normal(0.0, action_noise, size=clean.shape) if action_noise > 0 else clean
+        executed = np.clip(noisy, -1.0, 1.0).astype(np.float32)
+        obs, reward, terminated, truncated, info = env.step(executed[None])
         observations.append(obs["state"])
         if images is not None:
             images.append(obs["image"])
-        actions.append(action)
+        actions.append(np.clip(clean, -1.0, 1.0).astype(np.float32) if dart else executed)
         rewards.append(reward)
         successes.append(info["success"])
         done = terminated or truncated
