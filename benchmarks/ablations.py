@@ -20,6 +20,12 @@ Verdict on a claim "the ablation is worse than the default" (sign -1) or "better
 ``reproduced`` when the interval lies on the claimed side of 0, ``contradicted`` when it lies on
 the other side, ``not separated`` when it contains 0 (with the measured difference: a small
 interval around 0 says the two are level here, a wide one that the test could not tell).
+
+A session's machine may not outlive the runs (3 seeds x 16 runs is ~3.5 h on 2 cores): after every
+seed, and whenever the table is made, the small files of every finished run (summary, metrics,
+config; each seed's SFT policy) are kept under ``OUT/finished/`` (committed with the table); a
+rerun on a machine without ``--work`` restores them first, so only the unfinished runs run again
+(from the seed's kept SFT policy).
 """
 
 from __future__ import annotations
@@ -97,12 +103,75 @@ def compare_argv(args: argparse.Namespace, seeds: list[int]) -> list[str]:
             "--out", args.work]
 
 
-def run(args: argparse.Namespace) -> None:
-    """The comparison, one more seed per call: every variant of a seed before the next seed."""
+KEPT_FILES = ("summary.json", "metrics.jsonl", "config.yaml", "run.json", "policy/config.json",
+              "policy/model.safetensors", "policy/processor.safetensors")
+"""What is kept of a finished run: what the table, the curves and ``stepnft compare``'s resume
+read. Only the SFT runs have ``policy/`` kept (~0.8 MB a seed): it is the start of every run of
+its seed, so the runs not finished yet continue from that very policy."""
+
+
+def _finished(work: Path) -> list[Path]:
+    """The finished SFT and RL run folders of the comparison ``work`` (as ``job_state`` reads them)."""
+    sft = [d.parent for d in work.glob("sft/seed*/summary.json") if (d.parent / "policy").is_dir()]
+    return sorted(sft) + sorted(d.parent for d in work.glob("runs/*/seed*/summary.json"))
+
+
+def _copy_run(src: Path, dest: Path) -> None:
+    for name in KEPT_FILES:
+        if (src / name).is_file() and not (name.startswith("policy/") and src.parent.parent.name == "runs"):
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / name, dest / name)
+
+
+def keep_finished(work: Path, keep: Path) -> int:
+    """Copy the comparison's settings and status and the kept files of every finished run of
+    ``work`` into ``keep``; the number of runs kept."""
+    if not (work / "compare.json").is_file():
+        return 0
+    keep.mkdir(parents=True, exist_ok=True)
+    for name in ("compare.json", "status.json"):
+        if (work / name).is_file():
+            shutil.copy(work / name, keep / name)
+    runs = _finished(work)
+    for run_dir in runs:
+        _copy_run(run_dir, keep / run_dir.relative_to(work))
+    return len(runs)
+
+
+def restore_finished(keep: Path, work: Path) -> int:
+    """Put the runs kept in ``keep`` back into ``work`` where ``work`` lacks them (a new machine):
+    ``stepnft compare`` then counts them finished. The number restored."""
+    if not (keep / "compare.json").is_file():
+        return 0
+    work.mkdir(parents=True, exist_ok=True)
+    for name in ("compare.json", "status.json"):
+        if (keep / name).is_file() and not (work / name).is_file():
+            shutil.copy(keep / name, work / name)
+    n = 0
+    for run_dir in _finished(keep):
+        dest = work / run_dir.relative_to(keep)
+        if (dest / "summary.json").is_file():
+            continue
+        if dest.exists():
+            shutil.rmtree(dest)  # an unfinished attempt: the kept run replaces it
+        dest.mkdir(parents=True)
+        _copy_run(run_dir, dest)
+        n += 1
+    return n
+
+
+def run(args: argparse.Namespace, keep: Path) -> None:
+    """The comparison, one more seed per call: every variant of a seed before the next seed;
+    finished runs kept in ``keep`` after each."""
+    work = Path(args.work)
+    restored = restore_finished(keep, work)
+    if restored:
+        print(f"restored {restored} finished run(s) from {keep} into {work}", flush=True)
     for k in range(1, len(args.seeds) + 1):
         argv = compare_argv(args, args.seeds[:k])
         print("+", " ".join(argv), flush=True)
         subprocess.run(argv, check=True)
+        keep_finished(work, keep)
 
 
 def read_rows(work: Path) -> dict[str, dict]:
@@ -254,8 +323,12 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    keep = out / "finished"
     if not args.table_only:
-        run(args)
+        run(args, keep)
+    else:
+        restore_finished(keep, Path(args.work))
+    keep_finished(Path(args.work), keep)
     table(args, out)
 
 
