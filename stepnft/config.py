@@ -67,6 +67,11 @@ class EnvConfig(Settings):
     """State observation: full (MetaWorld's 39 values, object and goal positions included) or
     proprio (hand xyz and gripper opening only: for camera policies; --policy.state-dim 4).
     LIBERO: full 64, proprio 8, interest 22 (the proprioception and the objects of interest' poses)."""
+    reward: Literal["native", "shaped"] = "native"
+    """native: the simulator's own reward (MetaWorld's and ManiSkill's are shaped; LIBERO's is
+    sparse, 1 while the goal holds); shaped: a reward that measures progress, what π-StepNFT's
+    labels: progress and PPO's reward: shaped read (MetaWorld, ManiSkill: their own; LIBERO: a
+    reach-grasp-lift-place reward from the objects of interest, pick-and-place tasks only)."""
     randomize: list[str] = field(default_factory=list)
     """Perturbations randomised in every training episode, from their training ranges (never
     the held-out ones the suites use): suite names (vision, semantic, execution) or single
@@ -79,6 +84,9 @@ class EnvConfig(Settings):
         cap = SIMULATORS[self.name].max_episode_steps
         if self.max_episode_steps > cap:
             raise self.fail(f"{{max_episode_steps}} must be in [1, {cap}] for {self.name}", self.max_episode_steps)
+        if self.reward == "shaped" and SIMULATORS[self.name].reward == "sparse":
+            raise self.fail(f"{{reward}} shaped: {self.name}'s reward is success only and it has no shaped option; "
+                            "use native", self.reward)
         try:
             self.randomize = list(expand(self.randomize))
         except ValueError as err:

@@ -33,6 +33,7 @@ BAD_VALUES = [
     (EnvConfig, "envs_per_task", 0, "env.envs_per_task must be an integer >= 1, got 0"),
     (EnvConfig, "image_size", 4, "env.image_size must be an integer in [8, 480], got 4"),
     (EnvConfig, "state_obs", "pixels", "env.state_obs must be one of full, proprio, interest, got 'pixels'"),
+    (EnvConfig, "reward", "dense", "env.reward must be one of native, shaped, got 'dense'"),
     (EnvConfig, "terminate_on_success", 1, "env.terminate_on_success must be true or false, got 1"),
     (EnvConfig, "tasks", 5, "env.tasks must be a list of names, got 5"),
     (DemoConfig, "action_noise", math.nan, "demos.action_noise must be a finite number >= 0, got nan"),
@@ -88,6 +89,8 @@ def test_every_bad_value_is_a_value_error_naming_its_setting(cls, key, value, ex
     (EnvConfig, {"max_episode_steps": 501}, "env.max_episode_steps must be in [1, 500] for metaworld, got 501"),
     (EnvConfig, {"name": "gazebo"}, "env.name must be one of metaworld, bandit, libero, maniskill, got 'gazebo'"),
     (EnvConfig, {"randomize": ["lighting"]}, "env.randomize vision perturbations change only camera images"),
+    (EnvConfig, {"name": "bandit", "tasks": ["bandit"], "max_episode_steps": 8, "reward": "shaped"},
+     "env.reward shaped: bandit's reward is success only and it has no shaped option; use native, got 'shaped'"),
     (DemoConfig, {"max_attempts": 3, "task_episodes": {"push-v3": 4}}, "demos.max_attempts must be >= the "
                                                                        "demonstrations wanted (5), got 3"),
     (FlowPolicyConfig, {"n_exec": 5}, "policy.n_exec (5) must be <= policy.horizon (4)"),
@@ -164,3 +167,11 @@ def test_shared_algorithm_settings_are_declared_once():
 def test_every_config_file_loads(path):
     cfg = load_config(path)
     assert isinstance(cfg, TrainConfig)
+
+
+def test_a_shaped_reward_is_asked_of_the_simulator_only_where_its_own_is_sparse():
+    from stepnft.envs import env_options
+
+    assert "reward" not in env_options(EnvConfig(reward="shaped"))  # MetaWorld's own reward is shaped
+    assert env_options(EnvConfig(name="libero", tasks=["libero_object"], reward="shaped"))["reward"] == "shaped"
+    assert "reward" not in env_options(EnvConfig(name="libero", tasks=["libero_object"]))

@@ -20,6 +20,10 @@ class SimulatorInfo:
     """The longest episode the simulator allows."""
     default_tasks: tuple[str, ...]
     """Tasks used when a config names none."""
+    reward: str = "shaped"
+    """Its own reward (``env.reward: native``): ``shaped`` (it measures progress, as MetaWorld's
+    and ManiSkill's ``normalized_dense`` do) or ``sparse`` (success only); ``sparse, shaped
+    option``: sparse, with a shaped reward of stepnft's own as ``env.reward: shaped``."""
 
 
 DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
@@ -27,8 +31,8 @@ DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer
 
 SIMULATORS: dict[str, SimulatorInfo] = {
     "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
-    "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",)),
-    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",)),
+    "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",), "sparse"),
+    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse, shaped option"),
     "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
 }
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
@@ -66,7 +70,8 @@ def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None, sub_envs=N
 
 def env_options(env_cfg, perturbations=None) -> dict:
     """The chunk-env options an ``EnvConfig`` sets beyond the defaults: ``cameras`` and
-    ``image_size``, ``state_obs``, ``perturbations`` (default: its ``randomize`` list, training ranges)."""
+    ``image_size``, ``state_obs``, ``reward`` (a shaped reward where the simulator's own is sparse),
+    ``perturbations`` (default: its ``randomize`` list, training ranges)."""
     from stepnft.envs.perturbations import Perturbations
 
     perturbations = Perturbations(tuple(env_cfg.randomize)) if perturbations is None else perturbations
@@ -75,6 +80,8 @@ def env_options(env_cfg, perturbations=None) -> dict:
         options |= {"cameras": list(env_cfg.cameras), "image_size": env_cfg.image_size}
     if env_cfg.state_obs != "full":
         options["state_obs"] = env_cfg.state_obs
+    if getattr(env_cfg, "reward", "native") == "shaped" and SIMULATORS[env_cfg.name].reward != "shaped":
+        options["reward"] = "shaped"  # where the simulator's own reward is shaped already, it is that one
     if perturbations:
         options["perturbations"] = perturbations
     return options

@@ -134,6 +134,30 @@ def test_noisy_demonstrations_keep_the_controllers_actions_for_the_states_visite
         record_demos(SOUP, 1, "/nonexistent", action_noise=-0.1)
 
 
+def test_the_shaped_reward_rises_through_a_scripted_pick_and_place_and_is_1_at_success(sim):
+    """``reward="shaped"``: robosuite's staged pick-and-place reward: near 0 far from the can,
+    the grasp stage (0.35) once held, over 0.5 lifted, up to 0.7 over the basket, 1 at success;
+    the sparse reward is 0 until then. A task that moves nothing has none."""
+    rewards = {}
+    for kind in ("sparse", "shaped"):
+        one = sim.make_env(SOUP, n_exec=1, max_episode_steps=280, seed=0, state_obs="interest", reward=kind)
+        trace, step = [], one.step
+        one.step = lambda chunk: (out := step(chunk), trace.append(out[1]))[0]
+        try:
+            assert record_episode(one, 0) is not None
+        finally:
+            one.close()
+        rewards[kind] = np.array(trace)
+    sparse, shaped = rewards["sparse"], rewards["shaped"]
+    assert len(sparse) == len(shaped) and sparse[-1] == shaped[-1] == 1.0 and not sparse[:-1].any()
+    assert shaped[0] < 0.05 and 0.35 <= shaped[len(shaped) // 2] < 0.7 and shaped[-2] > 0.6
+    assert np.all(shaped[:-1] <= 0.7)
+    with pytest.raises(ValueError, match="pick-and-place tasks .* use reward sparse"):
+        sim.make_env("turn_on_the_stove", reward="shaped")
+    with pytest.raises(ValueError, match="sparse .* or shaped, got 'dense'"):
+        sim.make_env(SOUP, reward="dense")
+
+
 def test_a_random_placement_is_none_of_the_benchmark_initial_states(env):
     """``reset(options={"placement": k})``: LIBERO's own random placement with seed k, the same
     every time, other for another k, and off the 50 evaluation states (where the scripted
@@ -340,14 +364,16 @@ def test_lerobot_loader(tmp_path, version):
 @pytest.mark.slow
 def test_tiny_sft_and_stepnft_run_and_eval_from_the_cli(tmp_path, demo_dir, capsys):
     """The camera policy of configs/libero.yaml, shrunk: SFT from a LIBERO HDF5 file, one
-    π-StepNFT iteration, evaluation, then `stepnft eval` with a video."""
+    π-StepNFT iteration (progress labels on the shaped reward), evaluation, then `stepnft eval`
+    with a video."""
     run = tmp_path / "run"
     common = ["--env.tasks", SOUP, "--env.envs-per-task", "1", "--env.max-episode-steps", "24"]
     assert main(["train", "--config", "configs/libero.yaml", "--run-dir", str(run), *common, "--env.num-workers", "0",
                  "--env.image-size", "16", "--policy.image-size", "16", "--demos.path", str(demo_dir),
                  "--demos.episodes", "1", "--sft.steps", "3", "--sft.batch-size", "8", "--iterations", "1",
                  "--episodes-per-iteration", "1", "--eval.episodes", "1", "--eval.every", "0",
-                 "--algo.minibatch-size", "8"]) == 0
+                 "--algo.minibatch-size", "8", "--env.reward", "shaped", "--algo.labels", "progress"]) == 0
+    assert "reward: shaped" in (run / "config.yaml").read_text()
     summary = json.loads((run / "summary.json").read_text())
     assert summary["env_steps"] > 0 and SOUP in summary["tasks"] and (run / "policy" / "model.safetensors").is_file()
     videos = tmp_path / "videos"

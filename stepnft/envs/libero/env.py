@@ -21,6 +21,14 @@ Observations:
                and LeRobot feed it), with shadows, as LIBERO's datasets were rendered
 Cameras are rendered once per ``step`` call (after the chunk), not after every env step.
 
+Reward: ``reward="sparse"`` (LIBERO's own): per env step 1 while the goal holds, else 0.
+``reward="shaped"``: robosuite's staged pick-and-place reward (its PickPlace task's reach 0.1,
+grasp 0.35, lift 0.5, hover 0.7 stages; :func:`staged_reward`) for the first object of interest
+(what is moved) and the second (where it goes), 1 once the goal holds: a function of the state
+that rises as the episode gets closer to success, which π-StepNFT's ``labels: progress`` and
+PPO's ``reward: shaped`` read. Only for tasks with two objects of interest that are objects (the
+pick-and-place tasks of libero_object and libero_spatial, some of libero_goal and libero_10).
+
 Actions: float32 [n_exec, 7] in [-1, 1]: end-effector translation (3) and rotation (3) deltas,
 gripper (-1 open, +1 close), as in LIBERO's datasets.
 
@@ -76,6 +84,31 @@ SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
 """Hold still with the gripper open (the reference evaluation's 'dummy action')."""
 
 
+REWARDS = ("sparse", "shaped")
+LIFT_HEIGHT = 0.25
+"""The lift stage's target: this far above the place target (the scripted recorder's carry height)."""
+ABOVE_TARGET = 0.05
+"""Within this x and y distance of the place target the object counts as above it."""
+
+
+def staged_reward(problem, moved, target) -> float:
+    """robosuite's PickPlace staged reward for moving object ``moved`` to ``target`` (LIBERO
+    objects of ``problem``, LIBERO's robosuite env): the largest of reaching (0.1 at the object),
+    grasping (0.35), lifting towards ``LIFT_HEIGHT`` above the target (0.35 to 0.5, while
+    grasped) and hovering over the target (0.5 to 0.7 once above it, else the lift reward plus up
+    to 0.2 for closing in), in [0, 0.7]."""
+    gripper = problem.robots[0].gripper
+    obj = problem.sim.data.body_xpos[problem.obj_body_id[moved.name]]
+    goal = problem.sim.data.body_xpos[problem.obj_body_id[target.name]]
+    reach = 0.1 * (1 - np.tanh(10.0 * problem._gripper_to_target(gripper, moved.root_body, "body", True)))
+    grasp = 0.35 * bool(problem._check_grasp(gripper, moved.contact_geoms))
+    lift = 0.35 + 0.15 * (1 - np.tanh(15.0 * max(goal[2] + LIFT_HEIGHT - obj[2], 0.0))) if grasp else 0.0
+    xy = np.abs(obj[:2] - goal[:2])
+    closer = 1 - np.tanh(10.0 * float(np.linalg.norm(xy)))
+    hover = (0.5 if (xy < ABOVE_TARGET).all() else lift) + 0.2 * closer
+    return float(max(reach, grasp, lift, hover))
+
+
 def proprio_state(obs: dict[str, np.ndarray]) -> np.ndarray:
     """The 8-d ``state`` from robosuite's observation dict."""
     from robosuite.utils.transform_utils import quat2axisangle
@@ -105,7 +138,7 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
 
     ``step`` stops early when the task succeeds (if ``terminate_on_success``) or the episode
     reaches its cap: ``max_episode_steps``, at most the suite's reference cap. It returns the
-    summed reward (LIBERO's sparse reward: 1 while the goal holds) and info (``success``,
+    summed reward (``reward``: see the module doc) and info (``success``,
     ``steps``, ``episode_steps``). Stepping an ended episode is a no-op.
     """
 
@@ -113,7 +146,8 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
 
     def __init__(self, task: str, n_exec: int = 1, max_episode_steps: int = 520, terminate_on_success: bool = True,
                  seed: int = 0, render_size: tuple[int, int] | None = None, cameras: Sequence[str] = (),
-                 image_size: int = 64, state_obs: str = "full", perturbations=None, settle_steps: int = SETTLE_STEPS):
+                 image_size: int = 64, state_obs: str = "full", perturbations=None, settle_steps: int = SETTLE_STEPS,
+                 reward: str = "sparse"):
         tasks = all_tasks()
         if task not in tasks:
             raise ValueError(f"unknown LIBERO task {task!r}: `python -m stepnft.envs.libero` lists them")
@@ -124,6 +158,8 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         if unknown:
             raise ValueError(f"unknown LIBERO camera {unknown[0]!r}; its cameras: {', '.join(CAMERAS)}")
         state_dim = state_dim_for(state_obs)
+        if reward not in REWARDS:
+            raise ValueError(f"LIBERO's reward is sparse (its own) or shaped, got {reward!r}")
         if perturbations:
             raise ValueError("LIBERO has no perturbation suites or training randomisation (docs/ood.md is MetaWorld's)")
         self.task = tasks[task]
@@ -158,6 +194,15 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
                                camera_widths=image_size, hard_reset=False, ignore_done=True,
                                control_freq=CONTROL_HZ)
         self._objects = object_names(self._env.env)
+        self.reward = reward
+        self._staged = None
+        if reward == "shaped":
+            problem = self._env.env
+            interest = [problem.objects_dict.get(name) for name in problem.obj_of_interest[:2]]
+            if len(interest) < 2 or None in interest:
+                raise ValueError(f"LIBERO's shaped reward is for pick-and-place tasks (two objects of interest: what is "
+                                 f"moved, where it goes); {task} has {list(problem.obj_of_interest)}: use reward sparse")
+            self._staged = interest
         self.np_random, _ = seeding.np_random(seed)
         self._obs: dict[str, np.ndarray] | None = None
 
@@ -205,6 +250,8 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
         for action in np.clip(chunk, -1.0, 1.0):
             raw, reward, goal_reached, _ = self._env.step(action)
             steps += 1
+            if self._staged is not None:
+                reward = 1.0 if goal_reached else staged_reward(self._env.env, *self._staged)
             reward_sum += float(reward)
             if self._count_step(bool(goal_reached)):
                 break
