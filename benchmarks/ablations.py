@@ -133,9 +133,32 @@ def keep_finished(work: Path, keep: Path) -> int:
         if (work / name).is_file():
             shutil.copy(work / name, keep / name)
     runs = _finished(work)
+    made_on = machines(keep)
     for run_dir in runs:
-        _copy_run(run_dir, keep / run_dir.relative_to(work))
+        name = str(run_dir.relative_to(work))
+        _copy_run(run_dir, keep / name)
+        # Runs are deterministic per CPU family, not across them (an Intel Xeon and an AMD EPYC
+        # split at the first iteration, docs/experiments.md §13): which machine made each one.
+        made_on.setdefault(name, cpu()["model"])
+    (keep / "machines.json").write_text(json.dumps(made_on, indent=1, sort_keys=True))
     return len(runs)
+
+
+def machines(keep: Path) -> dict[str, str]:
+    """``{"runs/VARIANT/seedS": CPU model}`` of the runs kept (the machine that made each)."""
+    path = keep / "machines.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def machines_line(made_on: dict[str, str]) -> str:
+    """One sentence: which CPU made the runs of each seed."""
+    per_seed: dict[str, set[str]] = {}
+    for name, model in made_on.items():
+        per_seed.setdefault(name.rsplit("seed", 1)[1], set()).add(model or "unknown CPU")
+    if not per_seed:
+        return "Machines: not recorded."
+    return "Machines (runs are deterministic per CPU family, not across them): " + "; ".join(
+        f"seed {seed} on {', '.join(sorted(models))}" for seed, models in sorted(per_seed.items())) + "."
 
 
 def restore_finished(keep: Path, work: Path) -> int:
@@ -288,6 +311,7 @@ def table(args: argparse.Namespace, out: Path) -> dict:
         "direction, not the level.", "",
         f"Default `{REFERENCE}`: " + (f"{ref['success']:.2f} ({ref['seeds']} seeds); SFT start {sft['success']:.2f}."
                                       if ref and sft else "not finished yet."), "",
+        machines_line(machines(out / "finished")), "",
         "| ablation | question | the paper | ours (seeds) | Δ vs default [95 % CI] | paper's claim | verdict | note |",
         "|---|---|---|---|---|---|---|---|",
     ]

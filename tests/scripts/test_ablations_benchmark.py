@@ -57,6 +57,9 @@ def test_finished_runs_are_kept_and_restored_on_a_new_machine(ablations, tmp_pat
     _write(work / "sft" / "seed1" / "summary.json")  # an SFT without its policy is not finished
 
     assert ablations.keep_finished(work, keep) == 2
+    made_on = ablations.machines(keep)
+    assert sorted(made_on) == ["runs/stepnft/seed0", "sft/seed0"]
+    assert ablations.machines_line(made_on).startswith("Machines (runs are deterministic per CPU family")
     assert (keep / "sft" / "seed0" / "policy" / "model.safetensors").is_file()
     assert not (keep / "runs" / "stepnft" / "seed0" / "checkpoints").exists()
     assert not (keep / "runs" / "ode").exists() and not (keep / "sft" / "seed1").exists()
