@@ -40,6 +40,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import stepnft  # noqa: F401  - caps torch's CPU kernels before anything computes, so cpu() records the capped ones
 from provenance import command, commit, cpu, packages
 
 
