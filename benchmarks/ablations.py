@@ -104,22 +104,25 @@ def compare_argv(args: argparse.Namespace, seeds: list[int]) -> list[str]:
             "--out", args.work]
 
 
-KEPT_FILES = ("summary.json", "metrics.jsonl", "config.yaml", "run.json", "policy/config.json",
-              "policy/model.safetensors", "policy/processor.safetensors")
-"""What is kept of a finished run: what the table, the curves and ``stepnft compare``'s resume
-read. Only the SFT runs have ``policy/`` kept (~0.8 MB a seed): it is the start of every run of
+RUN_FILES = ("summary.json", "metrics.jsonl", "config.yaml", "run.json")
+"""What is kept of a finished RL run: what the table, the curves and ``stepnft compare``'s resume read."""
+SFT_FILES = ("summary.json", "config.yaml", "run.json", "policy/config.json", "policy/model.safetensors",
+             "policy/processor.safetensors")
+"""What is kept of a finished SFT run: its policy too (~0.8 MB a seed), the start of every run of
 its seed, so the runs not finished yet continue from that very policy."""
 
 
-def _finished(work: Path) -> list[Path]:
-    """The finished SFT and RL run folders of the comparison ``work`` (as ``job_state`` reads them)."""
-    sft = [d.parent for d in work.glob("sft/seed*/summary.json") if (d.parent / "policy").is_dir()]
-    return sorted(sft) + sorted(d.parent for d in work.glob("runs/*/seed*/summary.json"))
+def _finished(work: Path) -> list[tuple[Path, tuple[str, ...]]]:
+    """The finished SFT and RL run folders of the comparison ``work`` (as ``job_state`` reads
+    them), each with the files kept of it."""
+    sft = sorted(d.parent for d in work.glob("sft/seed*/summary.json") if (d.parent / "policy").is_dir())
+    runs = sorted(d.parent for d in work.glob("runs/*/seed*/summary.json"))
+    return [(d, SFT_FILES) for d in sft] + [(d, RUN_FILES) for d in runs]
 
 
-def _copy_run(src: Path, dest: Path) -> None:
-    for name in KEPT_FILES:
-        if (src / name).is_file() and not (name.startswith("policy/") and src.parent.parent.name == "runs"):
+def _copy_run(src: Path, dest: Path, names: tuple[str, ...]) -> None:
+    for name in names:
+        if (src / name).is_file():
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(src / name, dest / name)
 
@@ -134,13 +137,13 @@ def keep_finished(work: Path, keep: Path) -> int:
         if (work / name).is_file():
             shutil.copy(work / name, keep / name)
     runs = _finished(work)
-    made_on = machines(keep)
-    for run_dir in runs:
+    made_on, model = machines(keep), cpu()["model"]
+    for run_dir, names in runs:
         name = str(run_dir.relative_to(work))
-        _copy_run(run_dir, keep / name)
+        _copy_run(run_dir, keep / name, names)
         # Runs are deterministic per CPU family, not across them (an Intel Xeon and an AMD EPYC
         # split at the first iteration, docs/experiments.md §13): which machine made each one.
-        made_on.setdefault(name, cpu()["model"])
+        made_on.setdefault(name, model)
     (keep / "machines.json").write_text(json.dumps(made_on, indent=1, sort_keys=True))
     return len(runs)
 
@@ -172,14 +175,14 @@ def restore_finished(keep: Path, work: Path) -> int:
         if (keep / name).is_file() and not (work / name).is_file():
             shutil.copy(keep / name, work / name)
     n = 0
-    for run_dir in _finished(keep):
+    for run_dir, names in _finished(keep):
         dest = work / run_dir.relative_to(keep)
         if (dest / "summary.json").is_file():
             continue
         if dest.exists():
             shutil.rmtree(dest)  # an unfinished attempt: the kept run replaces it
         dest.mkdir(parents=True)
-        _copy_run(run_dir, dest)
+        _copy_run(run_dir, dest, names)
         n += 1
     return n
 
@@ -188,9 +191,6 @@ def run(args: argparse.Namespace, keep: Path) -> None:
     """The comparison, one more seed per call: every variant of a seed before the next seed;
     finished runs kept in ``keep`` after each."""
     work = Path(args.work)
-    restored = restore_finished(keep, work)
-    if restored:
-        print(f"restored {restored} finished run(s) from {keep} into {work}", flush=True)
     for k in range(1, len(args.seeds) + 1):
         argv = compare_argv(args, args.seeds[:k])
         print("+", " ".join(argv), flush=True)
@@ -348,12 +348,13 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    keep = out / "finished"
+    keep, work = out / "finished", Path(args.work)
+    restored = restore_finished(keep, work)
+    if restored:
+        print(f"restored {restored} finished run(s) from {keep} into {work}", flush=True)
     if not args.table_only:
         run(args, keep)
-    else:
-        restore_finished(keep, Path(args.work))
-    keep_finished(Path(args.work), keep)
+    keep_finished(work, keep)  # also the runs a stopped comparison finished
     table(args, out)
 
 

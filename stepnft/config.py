@@ -81,10 +81,11 @@ class EnvConfig(Settings):
     def check(self) -> None:
         if self.name not in SIMULATORS:
             raise self.fail(f"{{name}} must be one of {', '.join(SIMULATORS)}", self.name)
-        cap = SIMULATORS[self.name].max_episode_steps
-        if self.max_episode_steps > cap:
-            raise self.fail(f"{{max_episode_steps}} must be in [1, {cap}] for {self.name}", self.max_episode_steps)
-        if self.reward == "shaped" and SIMULATORS[self.name].reward == "sparse":
+        info = SIMULATORS[self.name]
+        if self.max_episode_steps > info.max_episode_steps:
+            raise self.fail(f"{{max_episode_steps}} must be in [1, {info.max_episode_steps}] for {self.name}",
+                            self.max_episode_steps)
+        if self.reward == "shaped" and info.reward == "sparse" and not info.shaped_option:
             raise self.fail(f"{{reward}} shaped: {self.name}'s reward is success only and it has no shaped option; "
                             "use native", self.reward)
         try:

@@ -22,8 +22,10 @@ class SimulatorInfo:
     """Tasks used when a config names none."""
     reward: str = "shaped"
     """Its own reward (``env.reward: native``): ``shaped`` (it measures progress, as MetaWorld's
-    and ManiSkill's ``normalized_dense`` do) or ``sparse`` (success only); ``sparse, shaped
-    option``: sparse, with a shaped reward of stepnft's own as ``env.reward: shaped``."""
+    and ManiSkill's ``normalized_dense`` do) or ``sparse`` (success only)."""
+    shaped_option: bool = False
+    """With a ``sparse`` reward: whether its envs offer a shaped one of stepnft's own
+    (``env.reward: shaped`` passes ``reward="shaped"`` to them)."""
 
 
 DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
@@ -32,7 +34,7 @@ DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer
 SIMULATORS: dict[str, SimulatorInfo] = {
     "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",), "sparse"),
-    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse, shaped option"),
+    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse", True),
     "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
 }
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
@@ -80,7 +82,7 @@ def env_options(env_cfg, perturbations=None) -> dict:
         options |= {"cameras": list(env_cfg.cameras), "image_size": env_cfg.image_size}
     if env_cfg.state_obs != "full":
         options["state_obs"] = env_cfg.state_obs
-    if getattr(env_cfg, "reward", "native") == "shaped" and SIMULATORS[env_cfg.name].reward != "shaped":
+    if env_cfg.reward == "shaped" and SIMULATORS[env_cfg.name].reward == "sparse":
         options["reward"] = "shaped"  # where the simulator's own reward is shaped already, it is that one
     if perturbations:
         options["perturbations"] = perturbations

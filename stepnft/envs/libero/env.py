@@ -194,7 +194,6 @@ class LiberoChunkEnv(ChunkEpisode, gym.Env):
                                camera_widths=image_size, hard_reset=False, ignore_done=True,
                                control_freq=CONTROL_HZ)
         self._objects = object_names(self._env.env)
-        self.reward = reward
         self._staged = None
         if reward == "shaped":
             problem = self._env.env
