@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from provenance import command, commit, cpu, packages
+
 from stepnft.envs import DEFAULT_TASKS
 from stepnft.envs.metaworld import make_metaworld_vec_env
 
@@ -94,12 +96,17 @@ def main(argv=None) -> dict:
     context = (f"{len(args.tasks)} tasks x {args.envs_per_task} envs, cameras {args.cameras} at {args.image_size} px, "
                f"random actions, {args.seconds:.0f} s per setting; {platform.processor() or platform.machine()}, "
                f"{os.cpu_count()} CPUs, MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
+    load = os.getloadavg()
+    record = {"command": command(), "commit": commit(), "packages": packages(), "cpu": cpu(),
+              "load_average_after": load, "args": vars(args), "rows": rows}
+    context += (f"; {record['cpu']['model']}, load average {load[0]:.2f} when it ended.\n\n"
+                f"Command: `{record['command']}` (commit {record['commit']}).")
     text = "\n".join(["# Render throughput", "", context, "", *table, "", *[f"- {g}" for g in gains], ""])
     print("\n" + text)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "render_throughput.md").write_text(text)
-    (out / "render_throughput.json").write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2))
+    (out / "render_throughput.json").write_text(json.dumps(record, indent=2))
     return {"rows": rows}
 
 
