@@ -57,6 +57,10 @@ class EnvConfig(Settings):
     num_workers: Annotated[int, Range(ge=0)] = 0
     """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
     cores of a 2-core machine)."""
+    sim_backend: Literal["cpu", "gpu"] = "cpu"
+    """cpu: one simulator instance per sub-env (stepped in this process or in num_workers
+    processes). gpu (ManiSkill only, needs CUDA): each task's sub-envs are the scenes of one
+    batched ManiSkill env on the GPU's physics (envs_per_task of them, e.g. 256; docs/maniskill.md)."""
     cameras: list[str] = field(default_factory=list)
     """Cameras rendered into the observation ``image`` once per policy call (MetaWorld: corner,
     corner2, corner3, corner4, topview, behindGripper, gripperPOV; empty: state only). Needs
@@ -88,6 +92,11 @@ class EnvConfig(Settings):
         if self.reward == "shaped" and info.reward == "sparse" and not info.shaped_option:
             raise self.fail(f"{{reward}} shaped: {self.name}'s reward is success only and it has no shaped option; "
                             "use native", self.reward)
+        if self.sim_backend == "gpu" and self.name != "maniskill":
+            raise self.fail(f"{{sim_backend}} gpu is ManiSkill's batched GPU physics; {self.name} runs on the CPU: use cpu",
+                            self.sim_backend)
+        if self.sim_backend == "gpu" and self.num_workers:
+            raise self.fail("{sim_backend} gpu steps all scenes in this process: set {num_workers} 0", self.sim_backend)
         try:
             self.randomize = list(expand(self.randomize))
         except ValueError as err:

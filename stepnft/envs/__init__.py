@@ -64,10 +64,11 @@ def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None, sub_envs=N
     (:class:`~stepnft.envs.perturbations.Perturbations`) replaces the config's training
     randomisation (``env.randomize``), e.g. with a suite's held-out perturbations;
     ``sub_envs``: only those sub-envs (a remote worker's share, see ``Simulator.make_vec_env``)."""
+    backend = {} if env_cfg.sim_backend == "cpu" else {"sim_backend": env_cfg.sim_backend}  # ManiSkill's GPU physics
     return get_simulator(env_cfg.name).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
         terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers,
-        sub_envs=sub_envs, **env_options(env_cfg, perturbations))
+        sub_envs=sub_envs, **backend, **env_options(env_cfg, perturbations))
 
 
 def env_options(env_cfg, perturbations=None) -> dict:

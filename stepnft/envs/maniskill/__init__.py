@@ -53,6 +53,33 @@ class ManiSkill(Simulator):
         return ManiSkillChunkEnv(task, n_exec=n_exec, max_episode_steps=max_episode_steps,
                                  terminate_on_success=terminate_on_success, seed=seed, render_size=render_size, **options)
 
+    def make_vec_env(self, tasks, envs_per_task=1, n_exec=4, max_episode_steps=200, terminate_on_success=True, seed=0,
+                     num_workers=0, sub_envs=None, sim_backend="cpu", **options):
+        """As :meth:`Simulator.make_vec_env`; ``sim_backend="gpu"``: each task's sub-envs are the
+        scenes of one batched ManiSkill env on the GPU's physics (``stepnft.envs.maniskill.gpu``)."""
+        if sim_backend == "cpu":
+            return super().make_vec_env(tasks, envs_per_task, n_exec, max_episode_steps, terminate_on_success, seed,
+                                        num_workers, sub_envs, **options)
+        if sim_backend != "gpu":
+            raise ValueError(f"sim_backend must be cpu or gpu, got {sim_backend!r}")
+        if num_workers or sub_envs is not None:
+            raise ValueError("env.sim_backend gpu steps every scene in this process's batched env: use env.num_workers 0 "
+                             "and no Ray workers")
+        extra = set(options) - {"cameras", "image_size"}
+        if extra:
+            raise ValueError(f"env.sim_backend gpu does not take {', '.join(sorted(extra))}")
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ValueError("env.sim_backend gpu needs CUDA (ManiSkill's GPU physics), which this machine lacks; "
+                             "use env.sim_backend cpu")
+        from stepnft.envs.maniskill.gpu import ManiSkillGPUVecEnv
+
+        layout = self.vec_env_layout(tasks, envs_per_task)
+        return ManiSkillGPUVecEnv(layout["tasks"], layout["instructions"], layout["task_ids"],
+                                  layout["instruction_variants"], n_exec=n_exec, max_episode_steps=max_episode_steps,
+                                  terminate_on_success=terminate_on_success, seed=seed, **options)
+
     def expert(self, task: str, seed: int) -> Expert:
         (task,) = self.validate_tasks([task])
         if task not in EXPERTS:

@@ -3,7 +3,7 @@
 The scene is ManiSkill's own (``gym.make(task, num_envs=1, sim_backend="cpu")``: PhysX on the
 CPU, one scene per chunk env, so stepnft's vector envs and worker processes parallelise it as
 they do MuJoCo). ManiSkill's GPU-parallel physics (``sim_backend="gpu"``, thousands of scenes in
-one batched env) would need a vector env of its own and is not wired in (docs/maniskill.md).
+one batched env) has a vector env of its own: ``stepnft.envs.maniskill.gpu``.
 
 Observations:
     ``state``  float32 [64]: ManiSkill's ``obs_mode="state"`` vector (the arm's joint positions
