@@ -57,6 +57,8 @@ VARIANTS: dict[str, Variant] = {
                               {"labels": "episode"}),
     "ppo": Variant("ppo", "PPO with Flow-SDE and a critic, every denoising step stochastic"),
     "ppo-one": Variant("ppo", "PPO with Flow-SDE, one stochastic step per call (πRL)", {"sde_steps": "one"}),
+    "ppo-shared": Variant("ppo", "PPO whose value head shares the policy's encoder and trains it (a value head on a VLA)",
+                          {"critic_shares_encoder": True}),
     "grpo": Variant("grpo", "GRPO with Flow-SDE, group-normalised success, every step stochastic (lr 3e-5)",
                     {"lr": 3e-5}),  # tuned: at 1e-4 its ~24 steps per iteration move too far (experiments §12)
     "grpo-one": Variant("grpo", "GRPO with Flow-SDE, one stochastic step per call", {"sde_steps": "one"}),

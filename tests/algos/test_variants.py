@@ -34,6 +34,8 @@ def test_baselines_keep_the_shared_settings_only():
     assert isinstance(ppo, PPOConfig) and ppo.name == "ppo"
     assert (ppo.lr, ppo.update_epochs, ppo.noise_level) == (2e-4, 3, 0.5)
     assert ppo.sde_steps == "all" and variant_config("ppo-one", BASE).sde_steps == "one"
+    shared = variant_config("ppo-shared", BASE)  # the camera comparison's second critic
+    assert ppo.critic_shares_encoder is False and shared == dataclasses.replace(ppo, critic_shares_encoder=True)
     grpo = variant_config("grpo-one", BASE)
     assert isinstance(grpo, GRPOConfig) and grpo.sde_steps == "one" and grpo.lr == 2e-4
     # Back from a PPO base, π-StepNFT gets the shared fields and its own defaults otherwise.
