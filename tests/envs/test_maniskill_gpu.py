@@ -186,3 +186,31 @@ def test_the_gpu_backend_is_checked_in_one_line():
     with pytest.raises(SettingError, match="num_workers"):
         EnvConfig(name="maniskill", tasks=TASKS, sim_backend="gpu", num_workers=2).check()
     EnvConfig(name="maniskill", tasks=TASKS, sim_backend="gpu").check()
+
+
+def test_train_and_eval_run_on_the_gpu_backend_from_the_cli(monkeypatch, tmp_path):
+    """``stepnft train --env.sim-backend gpu`` end to end (SFT, rollouts, evaluation, checkpoints,
+    ``stepnft eval``) over the stand-in, CUDA's presence faked for the backend's check."""
+    from stepnft.cli import main
+
+    built = []  # num_envs of every batched env built: the CPU backend's are 1, the GPU backend's envs_per_task
+    monkeypatch.setattr(maniskill_env, "make_maniskill_env",
+                        lambda task, **kw: built.append(kw["num_envs"]) or FakeBatchedManiSkill(task, **kw))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    common = ["--env.name", "maniskill", "--env.tasks", ",".join(TASKS), "--env.max-episode-steps", "12"]
+    demos = tmp_path / "demos"
+    # The stand-in is not ManiSkill's scene: keep the experts' attempts whatever they reach.
+    assert main(["demos", *common, "--demos.path", str(demos), "--demos.episodes", "1",
+                 "--demos.no-successful-only"]) == 0
+    run = tmp_path / "run"
+    gpu = ["--env.sim-backend", "gpu", "--env.num-workers", "0", "--env.envs-per-task", "3"]
+    assert main(["train", "--run-dir", str(run), *common, *gpu, "--demos.path", str(demos), "--demos.episodes", "1",
+                 "--demos.no-successful-only",
+                 "--policy.state-dim", "64", "--policy.action-dim", "7", "--policy.hidden-dim", "16",
+                 "--iterations", "2", "--episodes-per-iteration", "6", "--sft.steps", "5", "--sft.batch-size", "8",
+                 "--algo.minibatch-size", "16", "--eval.episodes", "3", "--eval.every", "1",
+                 "--eval.during-episodes", "2", "--num-threads", "1"]) == 0
+    assert (run / "policy").is_dir() and (run / "checkpoints" / "LATEST").is_file()
+    assert "sim_backend: gpu" in (run / "config.yaml").read_text() and 3 in built
+    assert main(["eval", "--policy", str(run / "policy"), *common, *gpu, "--eval.episodes", "3",
+                 "--out", str(tmp_path / "eval.json")]) == 0
