@@ -134,12 +134,13 @@ def _first_message(box: str) -> str:
 
 
 def _resumable_flags() -> str:
-    """The flags ``--resume`` takes (``TrainConfig.resumable``), e.g. ``--ray.*, --device and
+    """The flags ``--resume`` takes (``TrainConfig.resumable`` and ``lengthening``), e.g. ``--ray.*, --device and
     --gradient-checkpointing``."""
     from stepnft.config import TrainConfig
 
     sections = {k for k, hint in typing.get_type_hints(TrainConfig).items() if dataclasses.is_dataclass(hint)}
-    flags = [f"--{k.replace('_', '-')}" + (".*" if k in sections else "") for k in TrainConfig.resumable]
+    flags = [f"--{k.replace('_', '-')}" + (".*" if k in sections else "")
+             for k in TrainConfig.resumable + TrainConfig.lengthening]
     return " and ".join(flags) if len(flags) < 3 else ", ".join(flags[:-1]) + " and " + flags[-1]
 
 
@@ -151,7 +152,8 @@ def _describe(cls) -> str:
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
                 " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
-                f" the last checkpoint of a run; it takes no other flags than {_resumable_flags()}).")
+                f" the last checkpoint of a run; it takes no other flags than {_resumable_flags()}: a larger"
+                " --iterations or --env-step-budget lengthens a finished run).")
     return doc
 
 
@@ -201,10 +203,20 @@ def _resumed_config(run_dir: str, config: str | None, rest: list[str], prog: str
     cfg = dataclasses.replace(load_config(cfg_path), run_dir=run_dir)
     name = _option(rest, "--algo.name")
     parsed = _parse(TrainConfig, rest, cfg, prog) if name in (None, cfg.algo.name) else None
-    changed = ["--algo.name"] if parsed is None else _differences(cfg, parsed, skip=TrainConfig.resumable)
+    skip = TrainConfig.resumable + TrainConfig.lengthening
+    changed = ["--algo.name"] if parsed is None else _differences(cfg, parsed, skip=skip)
     if changed:
         raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags than "
                          f"{_resumable_flags()}; drop: {' '.join(changed)}")
+    shorter = [flag for flag, old, new in (("--iterations", cfg.iterations, parsed.iterations),
+                                           ("--env-step-budget", cfg.env_step_budget, parsed.env_step_budget))
+               if old is not None and (new is not None and new < old)]
+    if shorter:
+        raise UsageError(f"--resume can lengthen a run, not shorten it: {' and '.join(shorter)} below the run's own "
+                         f"({cfg.iterations} iterations, env_step_budget {cfg.env_step_budget})")
+    if parsed.iterations != cfg.iterations and getattr(parsed.algo, "ema_horizon", 0) is None:
+        # The EMA schedule rose over the run's own length: keep it, so the decay is what it was.
+        parsed = dataclasses.replace(parsed, algo=dataclasses.replace(parsed.algo, ema_horizon=cfg.iterations))
     return parsed
 
 

@@ -208,6 +208,11 @@ class TrainConfig(Settings):
     resumable: ClassVar[tuple[str, ...]] = ("ray", "device", "gradient_checkpointing")
     """What a resumed run may change (``stepnft train --resume RUN --device cuda``): where it
     computes, never what it computes."""
+    lengthening: ClassVar[tuple[str, ...]] = ("iterations", "env_step_budget")
+    """What a resumed run may raise (``stepnft train --resume RUN --iterations 40``): a finished
+    or interrupted run goes on to the new length; π-StepNFT's EMA schedule keeps the horizon the
+    run started with, so the longer run is the one a new run with these values and that horizon
+    gives."""
 
     run_dir: str = "runs/stepnft"
     """Output folder: config.yaml, metrics.jsonl, TensorBoard logs, checkpoints, curves, summary."""

@@ -27,7 +27,7 @@ from stepnft import distributed
 from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
-from stepnft.config import TrainConfig, save_config
+from stepnft.config import TrainConfig, load_config, save_config
 from stepnft.data.demos import check_task_episodes, load_or_generate_demos
 from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
@@ -130,6 +130,12 @@ class TrainingRun:
         run = cls(cfg, run_dir, ckpt["policy"].to(cfg.device), collector, tasks)
         run.load_state_dict(ckpt["state"])
         log(f"resuming {run_dir} from iteration {run.progress.iteration} ({run.progress.env_steps} env steps)")
+        saved = load_config(run_dir / "config.yaml")
+        longer = {name: getattr(cfg, name) for name in TrainConfig.lengthening}
+        if any(getattr(saved, name) != value for name, value in longer.items()):
+            # Lengthened: the folder's config.yaml then describes the whole run, as a new run's does.
+            save_config(dataclasses.replace(saved, **longer, algo=cfg.algo), run_dir / "config.yaml")
+            log(f"lengthened to {cfg.iterations} iterations (env_step_budget {cfg.env_step_budget})")
         return run
 
     # --- checkpoints ------------------------------------------------------------------------

@@ -223,8 +223,9 @@ def test_resume_refuses_what_it_cannot_continue(capsys, workspace, tmp_path):
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", started)[::2], "train")
     assert "holds an SFT run, not a training run" in line
 
-    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "9")[::2], "train")
-    assert "takes no other flags than --ray.*, --device and --gradient-checkpointing; drop: --iterations" in line
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--seed", "9")[::2], "train")
+    assert ("takes no other flags than --ray.*, --device, --gradient-checkpointing, --iterations and "
+            "--env-step-budget; drop: --seed") in line
 
 
 def test_resume_of_a_corrupt_checkpoint_loses_nothing(capsys, workspace, tmp_path):
@@ -401,9 +402,17 @@ def test_a_resumed_run_may_move_its_rollouts(capsys, workspace):
                            (["--algo.name", "ppo"], "drop: --algo.name"),
                            (["--config", "configs/quickstart.yaml"], "drop: --config configs/quickstart.yaml")]:
         line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", *extra)[::2], "train")
-        assert "takes no other flags than --ray.*, --device and --gradient-checkpointing" in line or \
+        assert ("takes no other flags than --ray.*, --device, --gradient-checkpointing, --iterations and "
+                "--env-step-budget") in line or \
             "own config.yaml" in line
         assert dropped in line, line
+    # Longer, never shorter; π-StepNFT's EMA schedule keeps the run's own horizon (2 iterations).
+    cfg, _ = _config_from_argv(["--resume", str(workspace / "run"), "--iterations", "5", "--env-step-budget", "900"],
+                               "stepnft train", True)
+    assert (cfg.iterations, cfg.env_step_budget, cfg.algo.ema_horizon) == (5, 900, 2)
+    line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--iterations", "1")[::2],
+                                 "train")
+    assert "can lengthen a run, not shorten it: --iterations below the run's own (2 iterations" in line
     line = assert_one_line_error(*run_cli(capsys, "train", "--resume", workspace / "run", "--ray.timeout-s", "-1")[::2],
                                  "train")
     assert "--ray.timeout-s must be a finite number > 0, got -1.0" in line

@@ -1,6 +1,7 @@
 """The main job end to end on a tiny budget: artefacts, resume after a crash, atomic checkpoints,
 and few-shot SFT on demonstrations."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -145,6 +146,35 @@ def test_resume_after_a_crash_redoes_the_lost_iterations_exactly(finished_run, d
     uninterrupted = FlowPolicy.from_pretrained(finished_run / "policy").state_dict()
     for name in uninterrupted:
         assert torch.equal(resumed[name], uninterrupted[name]), name
+
+
+def test_a_finished_run_lengthened_by_resume_is_the_longer_run(demos, tmp_path):
+    """`--resume RUN --iterations 4` on a finished 2-iteration run goes on from its last
+    checkpoint with the EMA schedule it started with: the weights, losses and config.yaml of a new
+    4-iteration run whose EMA horizon is 2."""
+    def args(run_dir, iterations):
+        argv = tiny_train_args(run_dir, demos)
+        argv[argv.index("--iterations") + 1] = str(iterations)
+        return argv
+
+    assert main(args(tmp_path / "short", 2)) == 0
+    assert json.loads((tmp_path / "short" / "summary.json").read_text())["iterations"] == 2
+    assert main(["train", "--resume", str(tmp_path / "short"), "--iterations", "4"]) == 0
+    assert main(args(tmp_path / "long", 4) + ["--algo.ema-horizon", "2"]) == 0
+
+    lengthened, new = load_config(tmp_path / "short" / "config.yaml"), load_config(tmp_path / "long" / "config.yaml")
+    assert lengthened.iterations == 4 and lengthened.algo.ema_horizon == 2
+    assert lengthened == dataclasses.replace(new, run_dir=lengthened.run_dir, demos=lengthened.demos)
+    assert json.loads((tmp_path / "short" / "summary.json").read_text())["iterations"] == 4
+    mine, theirs = (read_metrics(tmp_path / name / "metrics.jsonl") for name in ("short", "long"))
+    assert [r["iteration"] for r in mine] == [r["iteration"] for r in theirs] == [0, 1, 2, 3, 4, 4]
+    for a, b in zip(mine, theirs):
+        assert a["env_steps"] == b["env_steps"] and a.get("charts/ema_decay") == b.get("charts/ema_decay")
+        assert {k: v for k, v in a.items() if k.startswith("losses/")} == \
+               {k: v for k, v in b.items() if k.startswith("losses/")}
+    lengthened_policy = FlowPolicy.from_pretrained(tmp_path / "short" / "policy").state_dict()
+    for name, value in FlowPolicy.from_pretrained(tmp_path / "long" / "policy").state_dict().items():
+        assert torch.equal(lengthened_policy[name], value), name
 
 
 def test_a_new_run_refuses_a_folder_holding_a_run(finished_run, demos, capsys):
