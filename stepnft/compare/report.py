@@ -1,6 +1,6 @@
 """A comparison's report, from whatever has finished: ``comparison.md`` (success per task with
 95 % CIs, paired differences, crashed runs), ``comparison.csv``, ``comparison.png`` (success
-against env steps) and, with ``--suites``, ``suites.md``."""
+against env steps) and, with ``--suites``, ``suites.md`` (with the paper's claims and their verdicts)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from pathlib import Path
 
 from stepnft.compare.command import CompareCommand, command_line
 from stepnft.compare.plan import SFT
-from stepnft.compare.stats import summarise, summarise_suites
+from stepnft.algos.variants import VARIANTS
+from stepnft.compare.claims import CLAIMS, PAPER_PI0, verdict
+from stepnft.compare.stats import mean_ci, paired_differences, summarise, summarise_suites
 from stepnft.evaluate import format_ci
 from stepnft.provenance import code_commit
 from stepnft.runs import write_atomic
@@ -28,7 +30,8 @@ def write_report(cmd: CompareCommand, out: Path, status: dict) -> dict:
     write_atomic(out / "comparison.csv", comparison_csv(summary))
     plot_comparison(summary, settings["env_step_budget"], out / "comparison.png")
     if cmd.suites:
-        write_suites_report(cmd, out, summary["reference"])
+        write_suites_report(cmd, out, summary["reference"],
+                            rewards={name: row["reward"] for name, row in summary["rows"].items()})
     return summary
 
 
@@ -104,24 +107,59 @@ def comparison_csv(summary: dict) -> str:
     return buffer.getvalue()
 
 
-def write_suites_report(cmd: CompareCommand, out: Path, reference: str) -> dict:
+def write_suites_report(cmd: CompareCommand, out: Path, reference: str, rewards: dict | None = None) -> dict:
     """``suites.md``: success per suite and the OOD average (mean [95 % t-interval] over seeds)
-    per algorithm, and the paired OOD difference to the reference (the paper's table shape);
-    returns :func:`~stepnft.compare.stats.summarise_suites`'s rows."""
+    per algorithm, the reward signal each learns from (``rewards``, by row), the paired OOD
+    difference to the reference (the paper's table shape), then the paper's π0 table beside
+    ours with a verdict per claim (:mod:`stepnft.compare.claims`); returns
+    :func:`~stepnft.compare.stats.summarise_suites`'s rows."""
     rows = summarise_suites(cmd, out, reference)
+    rewards = rewards or {}
     columns = [*SUITE_NAMES, "ood_average"]
     lines = [f"# Suites: {', '.join(cmd.suites)}", "", f"    {command_line(cmd)}", "",
              f"ODE evaluation of each final policy (and each SFT start), {cmd.suite_episodes} episodes per task and "
              "suite; mean over seeds [95 % t-interval]. OOD average: the mean of the vision, semantic and execution "
-             f"suites that apply. Δ OOD: paired difference to `{reference}`.", "",
-             "| algorithm | seeds | " + " | ".join(columns) + f" | Δ OOD vs {reference} |", "|---" * (len(columns) + 3) + "|"]
+             f"suites that apply. Δ OOD: paired difference to `{reference}`. Reward signal: what the algorithm "
+             "learns from (`success`: the sparse outcome; `success + shaped`: the shaped reward too).", "",
+             "| algorithm | seeds | " + " | ".join(columns) + f" | Δ OOD vs {reference} | reward signal |",
+             "|---" * (len(columns) + 4) + "|"]
     for name, row in rows.items():
         cells = [format_ci(row["success"][c]) for c in columns]
         delta = "–" if row["ood_diff"] is None else format_ci(row["ood_diff"], signed=True)
         lines.append(f"| {'SFT (start)' if name == SFT else name} | {row['seeds']} | " + " | ".join(cells)
-                     + f" | {delta} |")
+                     + f" | {delta} | {'–' if name == SFT else rewards.get(name) or '–'} |")
+    lines += claims_markdown(rows, cmd.algos, reference)
     write_atomic(out / "suites.md", "\n".join(lines) + "\n")
     return rows
+
+
+def claims_markdown(rows: dict, algos: list[str], reference: str) -> list[str]:
+    """The paper's π0 ManiSkill table, then each claim tested on π-StepNFT − each PPO row (paired
+    by seed): ``[]`` without a π-StepNFT and a PPO row among ``algos``."""
+    family = lambda name: VARIANTS[name].algo if name in VARIANTS else None  # noqa: E731
+    ours = next((a for a in [reference, *algos] if a in algos and family(a) == "stepnft"), None)
+    critics = [a for a in algos if family(a) == "ppo"]
+    if ours is None or not critics:
+        return []
+    columns = [*SUITE_NAMES, "ood_average"]
+    lines = ["", "## The paper's claims beside ours", "",
+             "The paper (π0 on ManiSkill; success per suite):", "",
+             "| paper | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    lines += [f"| {name} | " + " | ".join(f"{v[c]:.2f}" for c in columns) + " |" for name, v in PAPER_PI0.items()]
+    lines += ["", f"Each claim tested here on `{ours}` minus each PPO row, paired by seed (same SFT start), 95 % "
+              "t-interval over seeds: *reproduced*, *not reproduced*, or *inside the noise* (the interval cannot "
+              "tell).", "", "| claim | pair | paired seeds | Δ [95 % CI] | verdict |", "|---|---|---|---|---|"]
+    for critic in critics:
+        for claim in CLAIMS:
+            mine = {s: r[claim.suite] for s, r in rows[ours]["per_seed"].items()}
+            theirs = {s: r[claim.suite] for s, r in rows[critic]["per_seed"].items()}
+            diffs = paired_differences(mine, theirs)
+            if not any(v is not None for v in mine.values()):
+                continue  # a suite this comparison did not run
+            diff = mean_ci(diffs, -1.0, 1.0)
+            lines.append(f"| {claim.text} | {ours} − {critic} | {len(diffs)} | {format_ci(diff, signed=True)} | "
+                         f"{verdict(claim, diff)} |")
+    return lines
 
 
 def plot_comparison(summary: dict, budget: int, path: Path) -> None:

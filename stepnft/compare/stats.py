@@ -115,8 +115,9 @@ def summarise(cmd: CompareCommand, out: Path, status: dict) -> dict:
 
 
 def summarise_suites(cmd: CompareCommand, out: Path, reference: str) -> dict:
-    """Per row (SFT, then each variant): per-seed suite results (``OUT/suites/ROW/seedS``),
-    success per suite and the OOD average over seeds, and the OOD average's paired difference
+    """Per row (SFT, then each variant): per-seed suite results (``OUT/suites/ROW/seedS``;
+    ``per_seed``: success per suite and the OOD average, by seed), success per suite and the OOD
+    average over seeds, and the OOD average's paired difference
     to ``reference`` (``None`` for the reference and for rows without a paired seed)."""
     table = {}
     for row in [SFT, *cmd.algos]:
@@ -131,7 +132,7 @@ def summarise_suites(cmd: CompareCommand, out: Path, reference: str) -> dict:
     for row, per_seed in table.items():
         ood = {s: r["ood_average"] for s, r in per_seed.items()}
         paired = paired_differences(ood, {s: r["ood_average"] for s, r in table.get(reference, {}).items()})
-        rows[row] = {"seeds": len(per_seed),
+        rows[row] = {"seeds": len(per_seed), "per_seed": per_seed,
                      "success": {c: mean_ci([r[c] for r in per_seed.values() if r[c] is not None], 0.0, 1.0)
                                  for c in [*SUITE_NAMES, "ood_average"]},
                      "ood_diff": mean_ci(paired, -1.0, 1.0) if paired and row != reference else None}
