@@ -208,9 +208,8 @@ def _resumed_config(run_dir: str, config: str | None, rest: list[str], prog: str
     if changed:
         raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags than "
                          f"{_resumable_flags()}; drop: {' '.join(changed)}")
-    shorter = [flag for flag, old, new in (("--iterations", cfg.iterations, parsed.iterations),
-                                           ("--env-step-budget", cfg.env_step_budget, parsed.env_step_budget))
-               if old is not None and (new is not None and new < old)]
+    shorter = [f"--{name.replace('_', '-')}" for name in TrainConfig.lengthening
+               if None not in (getattr(cfg, name), getattr(parsed, name)) and getattr(parsed, name) < getattr(cfg, name)]
     if shorter:
         raise UsageError(f"--resume can lengthen a run, not shorten it: {' and '.join(shorter)} below the run's own "
                          f"({cfg.iterations} iterations, env_step_budget {cfg.env_step_budget})")

@@ -10,9 +10,9 @@ import json
 import math
 from pathlib import Path
 
+from stepnft.algos.variants import VARIANTS
 from stepnft.compare.command import CompareCommand, command_line
 from stepnft.compare.plan import SFT
-from stepnft.algos.variants import VARIANTS
 from stepnft.compare.claims import CLAIMS, PAPER_PI0, verdict
 from stepnft.compare.stats import mean_ci, paired_differences, summarise, summarise_suites
 from stepnft.evaluate import format_ci
@@ -136,9 +136,8 @@ def write_suites_report(cmd: CompareCommand, out: Path, reference: str, rewards:
 def claims_markdown(rows: dict, algos: list[str], reference: str) -> list[str]:
     """The paper's π0 ManiSkill table, then each claim tested on π-StepNFT − each PPO row (paired
     by seed): ``[]`` without a π-StepNFT and a PPO row among ``algos``."""
-    family = lambda name: VARIANTS[name].algo if name in VARIANTS else None  # noqa: E731
-    ours = next((a for a in [reference, *algos] if a in algos and family(a) == "stepnft"), None)
-    critics = [a for a in algos if family(a) == "ppo"]
+    ours = next((a for a in [reference, *algos] if a in algos and VARIANTS[a].algo == "stepnft"), None)
+    critics = [a for a in algos if VARIANTS[a].algo == "ppo"]
     if ours is None or not critics:
         return []
     columns = [*SUITE_NAMES, "ood_average"]
@@ -152,10 +151,9 @@ def claims_markdown(rows: dict, algos: list[str], reference: str) -> list[str]:
     for critic in critics:
         for claim in CLAIMS:
             mine = {s: r[claim.suite] for s, r in rows[ours]["per_seed"].items()}
-            theirs = {s: r[claim.suite] for s, r in rows[critic]["per_seed"].items()}
-            diffs = paired_differences(mine, theirs)
             if not any(v is not None for v in mine.values()):
                 continue  # a suite this comparison did not run
+            diffs = paired_differences(mine, {s: r[claim.suite] for s, r in rows[critic]["per_seed"].items()})
             diff = mean_ci(diffs, -1.0, 1.0)
             lines.append(f"| {claim.text} | {ours} − {critic} | {len(diffs)} | {format_ci(diff, signed=True)} | "
                          f"{verdict(claim, diff)} |")
