@@ -62,6 +62,13 @@ VARIANTS: dict[str, Variant] = {
     "grpo": Variant("grpo", "GRPO with Flow-SDE, group-normalised success, every step stochastic (lr 3e-5)",
                     {"lr": 3e-5}),  # tuned: at 1e-4 its ~24 steps per iteration move too far (experiments §12)
     "grpo-one": Variant("grpo", "GRPO with Flow-SDE, one stochastic step per call", {"sde_steps": "one"}),
+    # The baselines on the signal π-StepNFT's progress labels read (the simulator's shaped reward
+    # too), so a comparison's pairs learn from the same information (suites.md's reward column).
+    "ppo-shaped": Variant("ppo", "ppo on the shaped reward too (the signal of π-StepNFT's progress labels)",
+                          {"reward": "shaped"}),
+    "ppo-shared-shaped": Variant("ppo", "ppo-shared on the shaped reward too",
+                                 {"critic_shares_encoder": True, "reward": "shaped"}),
+    "grpo-shaped": Variant("grpo", "grpo on the shaped reward too (lr 3e-5)", {"lr": 3e-5, "reward": "shaped"}),
 }
 """Every variant ``stepnft compare`` knows. A new one adds a line."""
 

@@ -8,7 +8,7 @@ import yaml
 from stepnft.algos.grpo import GRPOConfig
 from stepnft.algos.ppo import PPOConfig
 from stepnft.algos.stepnft import StepNFTConfig
-from stepnft.algos.variants import PAPER_ALGO, SHARED_FIELDS, VARIANTS, describe_variants, variant_config
+from stepnft.algos.variants import PAPER_ALGO, SHARED_FIELDS, VARIANTS, describe_variants, reward_signal, variant_config
 from stepnft.config import load_config
 
 BASE = StepNFTConfig(noise_level=0.5, lr=2e-4, update_epochs=3, label_balance="global", record_steps="all")
@@ -75,3 +75,13 @@ def test_baseline_configs_are_the_compared_variants(name):
     config = load_config(f"configs/{name}.yaml")
     assert config.algo == variant_config(name, quickstart.algo)
     assert dataclasses.replace(config, run_dir=quickstart.run_dir, algo=quickstart.algo) == quickstart
+
+
+def test_shaped_baselines_read_the_signal_of_progress_labels():
+    progress = dataclasses.replace(BASE, labels="progress")
+    assert reward_signal(progress) == "success + shaped"
+    for name, plain in (("ppo-shaped", "ppo"), ("ppo-shared-shaped", "ppo-shared"), ("grpo-shaped", "grpo")):
+        shaped = variant_config(name, progress)
+        assert reward_signal(variant_config(plain, progress)) == "success"  # the plain baselines stay sparse
+        assert shaped == dataclasses.replace(variant_config(plain, progress), reward="shaped")
+        assert reward_signal(shaped) == "success + shaped"
