@@ -6,7 +6,7 @@ import math
 import pytest
 
 from stepnft.compare.claims import CLAIMS, PAPER_PI0, Claim, verdict
-from stepnft.compare.report import claims_markdown
+from stepnft.compare.report import claims_markdown, task_differences_markdown
 from stepnft.compare.stats import mean_ci
 
 LEVEL = Claim("ind", "level", "level", 0.05)
@@ -66,3 +66,23 @@ def test_the_report_tests_every_claim_on_every_ppo_row_paired_by_seed():
     ind = [line for line in lines if "in distribution" in line][0]
     assert "reproduced: level within ±5 points" in ind  # the same ind on every seed
     assert claims_markdown(rows, ["stepnft", "grpo"], "stepnft") == []  # no PPO row: no claims
+
+
+def test_the_suites_report_pairs_every_row_with_the_reference_per_suite_and_task():
+    def tasks(vision, execution):
+        return {"vision": dict(zip(["door", "faucet"], vision)), "execution": dict(zip(["door", "faucet"], execution))}
+
+    rows = {"sft": {"per_task": {0: tasks((0.5, 0.5), (0.2, 0.4)), 1: tasks((0.4, 0.6), (0.2, 0.4))}},
+            "stepnft": {"per_task": {0: tasks((0.8, 0.6), (0.4, 0.4)), 1: tasks((0.6, 0.8), (0.4, 0.6))}},
+            "ppo": {"per_task": {0: tasks((0.6, 0.6), (0.4, 0.4)), 2: tasks((0.0, 0.0), (0.0, 0.0))}}}
+    lines = task_differences_markdown(rows, "stepnft")
+    table = [line for line in lines if line.startswith("| ") and "paired seeds" not in line]
+    assert len(table) == 4 and not any(line.startswith("| stepnft ") for line in table)  # no reference row
+    assert "| algorithm | suite | paired seeds | door | faucet | average |" in lines
+    sft_vision = next(line for line in table if line.startswith("| SFT (start) | vision | 2 |"))
+    # Per task over seeds (-0.3 and -0.2 on door), on average over every (seed, task) pair.
+    assert sft_vision.split(" | ")[3].startswith(format(mean_ci([-0.3, -0.2])[0], "+.2f"))
+    assert sft_vision.split(" | ")[5].startswith(format(mean_ci([-0.3, -0.2, -0.1, -0.2])[0], "+.2f"))
+    # ppo pairs on seed 0 alone (its seed 2 has no stepnft run): one seed, no interval.
+    assert "| ppo | vision | 1 | -0.20 " in "\n".join(table)
+    assert task_differences_markdown({"stepnft": rows["stepnft"]}, "stepnft") == []

@@ -1,6 +1,7 @@
 """A comparison's report, from whatever has finished: ``comparison.md`` (success per task with
 95 % CIs, paired differences, crashed runs), ``comparison.csv``, ``comparison.png`` (success
-against env steps) and, with ``--suites``, ``suites.md`` (with the paper's claims and their verdicts)."""
+against env steps) and, with ``--suites``, ``suites.md`` (paired differences per suite and task, the
+paper's claims and their verdicts)."""
 
 from __future__ import annotations
 
@@ -110,7 +111,8 @@ def comparison_csv(summary: dict) -> str:
 def write_suites_report(cmd: CompareCommand, out: Path, reference: str, rewards: dict | None = None) -> dict:
     """``suites.md``: success per suite and the OOD average (mean [95 % t-interval] over seeds)
     per algorithm, the reward signal each learns from (``rewards``, by row), the paired OOD
-    difference to the reference (the paper's table shape), then the paper's π0 table beside
+    difference to the reference (the paper's table shape), the paired differences per suite and
+    task (:func:`task_differences_markdown`), then the paper's π0 table beside
     ours with a verdict per claim (:mod:`stepnft.compare.claims`); returns
     :func:`~stepnft.compare.stats.summarise_suites`'s rows."""
     rows = summarise_suites(cmd, out, reference)
@@ -128,9 +130,42 @@ def write_suites_report(cmd: CompareCommand, out: Path, reference: str, rewards:
         delta = "–" if row["ood_diff"] is None else format_ci(row["ood_diff"], signed=True)
         lines.append(f"| {'SFT (start)' if name == SFT else name} | {row['seeds']} | " + " | ".join(cells)
                      + f" | {delta} | {'–' if name == SFT else rewards.get(name) or '–'} |")
+    lines += task_differences_markdown(rows, reference)
     lines += claims_markdown(rows, cmd.algos, reference)
     write_atomic(out / "suites.md", "\n".join(lines) + "\n")
     return rows
+
+
+def task_differences_markdown(rows: dict, reference: str) -> list[str]:
+    """Each row minus ``reference`` per suite and task, paired by seed (95 % t-interval over
+    seeds; ``average``: over every (seed, task) pair): ``[]`` without a paired seed."""
+    ref = rows.get(reference, {}).get("per_task", {})
+    body, tasks = [], []
+    for name, row in rows.items():
+        if name == reference:
+            continue
+        for suite in SUITE_NAMES:
+            pairs = {s: (r[suite], ref[s][suite]) for s, r in row.get("per_task", {}).items()
+                     if suite in r and suite in ref.get(s, {})}
+            if not pairs:
+                continue
+            names = sorted({t for mine, theirs in pairs.values() for t in mine if t in theirs})
+            tasks += [t for t in names if t not in tasks]
+            diffs = {t: [mine[t] - theirs[t] for mine, theirs in pairs.values() if t in mine and t in theirs]
+                     for t in names}
+            body.append((name, suite, len(pairs), {t: mean_ci(d, -1.0, 1.0) for t, d in diffs.items()}
+                         | {"average": mean_ci([x for d in diffs.values() for x in d], -1.0, 1.0)}))
+    if not body:
+        return []
+    lines = ["", f"## Paired differences to `{reference}` per suite and task", "",
+             f"Each row minus `{reference}` on the same seed (same SFT start), 95 % t-interval over seeds; average: "
+             "over every (seed, task) pair.", "",
+             "| algorithm | suite | paired seeds | " + " | ".join([*tasks, "average"]) + " |",
+             "|---" * (len(tasks) + 4) + "|"]
+    for name, suite, n, diff in body:
+        cells = [format_ci(diff[t], signed=True) if t in diff else "–" for t in [*tasks, "average"]]
+        lines.append(f"| {'SFT (start)' if name == SFT else name} | {suite} | {n} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def claims_markdown(rows: dict, algos: list[str], reference: str) -> list[str]:
