@@ -24,7 +24,8 @@ from stepnft.config import save_config
 from stepnft.runs import write_atomic
 
 NOT_RUN = {"rc": None, "wall_clock_s": 0.0, "skipped": True}
-"""The result of a job that did not start (its seed's SFT failed, or the comparison stopped)."""
+"""The result of a job that did not start: the job it follows (its seed's SFT, or the run whose
+policy it evaluates) did not finish, or the comparison stopped."""
 
 
 def job_state(job: Job) -> str:
@@ -115,17 +116,18 @@ class StatusFile:
             entry["wall_clock_s"] += result["wall_clock_s"]
             entry["attempts"] += 1
         interrupted = result["rc"] in (130, -signal.SIGINT, -signal.SIGTERM)
+        not_run = result["rc"] is None
         entry |= {"rc": result["rc"], "state": job_state(job) if result["rc"] == 0 else
-                  "interrupted" if interrupted else "crashed",
+                  "interrupted" if interrupted else "not run" if not_run else "crashed",
                   "log": str(Path("logs") / f"{job.name}.log")}
         self.entries[job.name] = entry
         write_atomic(self.path, json.dumps(self.entries, indent=2))
         if interrupted:
             verb = "interrupted (a rerun resumes it)"
+        elif not_run:
+            verb = "not run: the job it follows did not finish (a rerun starts it once that one has)"
         elif result["rc"] != 0:
-            why = ("its seed's SFT failed" if result["rc"] is None
-                   else f"exit code {result['rc']}; see {self.path.parent / entry['log']}")
-            verb = f"CRASHED ({why})"
+            verb = f"CRASHED (exit code {result['rc']}; see {self.path.parent / entry['log']})"
         else:
             verb = "kept (finished earlier)" if result["skipped"] else f"finished in {result['wall_clock_s'] / 60:.1f} min"
         self.log(f"[{self.completed}/{self.total}] {job.name}: {verb}")

@@ -92,3 +92,17 @@ def test_an_interrupt_ends_every_child_and_the_pool(tmp_path, signum, ctrl_c_int
     assert not pool_threads() and not runner.procs
     entries = json.loads((tmp_path / "status.json").read_text())
     assert {e["state"] for e in entries.values()} == {"interrupted"} and len(entries) == 2  # slow2 never started
+
+
+def test_a_job_whose_predecessor_did_not_finish_is_recorded_as_not_run_not_as_crashed(tmp_path):
+    lines = []
+    status = StatusFile(tmp_path / "status.json", 3, lines.append)
+    status.record(eval_job(tmp_path, "ppo_seed0"), {"rc": -signal.SIGTERM, "wall_clock_s": 5.0, "skipped": False})
+    status.record(eval_job(tmp_path, "suites_ppo_seed0"), NOT_RUN)
+    status.record(eval_job(tmp_path, "grpo_seed0"), {"rc": 2, "wall_clock_s": 1.0, "skipped": False})
+    entries = json.loads((tmp_path / "status.json").read_text())
+    assert [entries[n]["state"] for n in ("ppo_seed0", "suites_ppo_seed0", "grpo_seed0")] == \
+        ["interrupted", "not run", "crashed"]
+    assert entries["suites_ppo_seed0"]["attempts"] == 0
+    assert "interrupted" in lines[0] and "not run: the job it follows did not finish" in lines[1]
+    assert "CRASHED (exit code 2" in lines[2] and "CRASHED" not in lines[1]
