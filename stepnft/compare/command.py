@@ -41,6 +41,11 @@ class CompareCommand:
     (OUT/suites.md). Empty: no suite evaluation."""
     suite_episodes: int = 50
     """Episodes per task and suite for --suites."""
+    variant_set: list[str] = field(default_factory=list)
+    """Settings of one compared variant on top of its own, VARIANT.FIELD=VALUE (algo.* fields,
+    YAML values; space-separated), e.g. ppo-shaped.lr=3e-5: a setting tuned for one method on
+    this config. Recorded in OUT/compare.json; a rerun may change a variant's only while it has
+    no run folder (delete OUT/runs/VARIANT to rerun it with new ones)."""
 
     def __post_init__(self) -> None:
         # --tasks, --env-steps and --eval-episodes are checked by the config sections they set
@@ -66,6 +71,27 @@ class CompareCommand:
             check_suites(self.suites)
         if self.suite_episodes < 1:
             raise ValueError(f"--suite-episodes must be >= 1, got {self.suite_episodes}")
+        self.variant_overrides()  # checks the items' shape and names
+
+    def variant_overrides(self) -> dict[str, dict]:
+        """``--variant-set`` as ``{variant: {field: value}}`` (values read as YAML); each variant
+        must be among ``--algos``. The fields are checked where the variant's config is built."""
+        from stepnft.config import read_yaml
+
+        overrides: dict[str, dict] = {}
+        for item in self.variant_set:
+            key, sep, value = item.partition("=")
+            # Variant names may hold dots (beta-0.5): the longest one that prefixes the key.
+            names = sorted((n for n in VARIANTS if key.startswith(n + ".")), key=len, reverse=True)
+            if not sep or not names or not key[len(names[0]) + 1:]:
+                raise ValueError(f"--variant-set {item}: expected VARIANT.FIELD=VALUE, e.g. ppo-shaped.lr=3e-5")
+            name, name_field = names[0], key[len(names[0]) + 1:]
+            if name not in self.algos:
+                raise ValueError(f"--variant-set {item}: {name} is not among --algos ({', '.join(self.algos)})")
+            if name_field == "name":
+                raise ValueError(f"--variant-set {item}: a variant's algorithm is its own; pick another variant")
+            overrides.setdefault(name, {})[name_field] = read_yaml(value)
+        return overrides
 
 
 def help_text() -> str:
@@ -78,5 +104,6 @@ def command_line(cmd: CompareCommand) -> str:
     steps = f" --env-steps {cmd.env_steps}" if cmd.env_steps is not None else ""
     evals = f" --eval-episodes {cmd.eval_episodes}" if cmd.eval_episodes is not None else ""
     suites = f" --suites {','.join(cmd.suites)} --suite-episodes {cmd.suite_episodes}" if cmd.suites else ""
+    variant_set = f" --variant-set {' '.join(cmd.variant_set)}" if cmd.variant_set else ""
     return (f"stepnft compare --config {cmd.config} --algos {','.join(cmd.algos)} "
-            f"--seeds {' '.join(map(str, cmd.seeds))}{tasks}{steps}{evals}{suites} --out {cmd.out}")
+            f"--seeds {' '.join(map(str, cmd.seeds))}{tasks}{steps}{evals}{suites}{variant_set} --out {cmd.out}")

@@ -11,9 +11,10 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from stepnft.algos.base import AlgoConfig
 from stepnft.algos.variants import variant_config
 from stepnft.compare.command import CompareCommand
-from stepnft.config import TrainConfig, load_config, to_dict
+from stepnft.config import TrainConfig, from_dict, load_config, to_dict
 from stepnft.data.demos import check_task_episodes
 from stepnft.envs import get_simulator
 from stepnft.runs import check_folder, write_atomic
@@ -70,6 +71,8 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
     out = check_folder(cmd.out, "comparison", "--out")  # a new folder, or the comparison to resume
     defaults = comparison_settings(TrainConfig(algo=type(base.algo)()))
     check_same_settings(out / "compare.json", comparison_settings(base), defaults)
+    overrides = cmd.variant_overrides()
+    check_variant_settings(out / "compare.json", overrides, out / "runs")
     sft_jobs, run_jobs = [], []
     for seed in cmd.seeds:
         sft_dir = out / "sft" / f"seed{seed}"
@@ -80,6 +83,11 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
             algo = variant_config(name, base.algo)
             if getattr(algo, "ema_horizon", 0) is None:  # π-StepNFT's EMA schedule: the base config's iterations
                 algo = dataclasses.replace(algo, ema_horizon=loaded.iterations)
+            if name in overrides:  # --variant-set, checked as a config file's algo section is
+                try:
+                    algo = from_dict(AlgoConfig, to_dict(algo) | overrides[name], "algo.")
+                except (ValueError, TypeError) as err:
+                    raise ValueError(f"--variant-set {name}: {err}") from None
             run_dir = out / "runs" / name / f"seed{seed}"
             cfg = dataclasses.replace(sft_cfg, run_dir=str(run_dir), init=str(sft_dir / "policy"), algo=algo)
             run_jobs.append(Job(f"{name}_seed{seed}", "train", run_dir, cfg))
@@ -128,6 +136,23 @@ def comparison_settings(base: TrainConfig) -> dict:
     return settings
 
 
+def check_variant_settings(path: Path, overrides: dict, runs: Path) -> None:
+    """Record ``--variant-set`` in ``compare.json`` (``variant_set``), or check a rerun asks for
+    the same: a variant's settings may change only while it has no run folder under ``runs``."""
+    recorded = json.loads(path.read_text())
+    old = recorded.get("variant_set", {})
+    new = json.loads(json.dumps(overrides))
+    changed = sorted(v for v in old.keys() | new.keys() if old.get(v) != new.get(v))
+    started = [v for v in changed if (runs / v).exists()]
+    if started:
+        raise ValueError(f"{path.parent} ran {', '.join(started)} with other --variant-set settings "
+                         f"({', '.join(f'{v}: {old.get(v, {})}' for v in started)}): rerun with those, or delete "
+                         f"{', '.join(str(runs / v) for v in started)} to rerun it with the new ones")
+    if changed:
+        recorded.pop("variant_set", None)
+        write_atomic(path, json.dumps(recorded | ({"variant_set": new} if new else {}), indent=2))
+
+
 def _flat(tree: dict, prefix: str = "") -> dict:
     flat = {}
     for k, v in tree.items():
@@ -143,7 +168,9 @@ def check_same_settings(path: Path, settings: dict, defaults: dict | None = None
     if not path.is_file():
         write_atomic(path, json.dumps(settings, indent=2))
         return
-    old, new = _flat(json.loads(path.read_text())), _flat(settings)
+    recorded = json.loads(path.read_text())
+    recorded.pop("variant_set", None)  # checked by check_variant_settings
+    old, new = _flat(recorded), _flat(settings)
     default = _flat(json.loads(json.dumps(defaults))) if defaults else {}
     diff = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k)
                   and not (k not in old and k in default and new.get(k) == default[k]))

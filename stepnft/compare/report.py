@@ -55,6 +55,10 @@ def comparison_markdown(cmd: CompareCommand, summary: dict, settings: dict, stat
             f"{_number(row['wall_clock_s'] / 60, '.1f')} | {_number(row['samples_per_s'], ',.0f')}")
         lines.append(f"| {label} | {runs} | " + " | ".join(format_ci(row["success"][c]) for c in columns)
                      + f" | {delta} | {extra} |")
+    if cmd.variant_set:
+        lines += ["", "Settings of single variants on top of their own (`--variant-set`): "
+                  + "; ".join(f"{name}: " + ", ".join(f"{k}={v}" for k, v in fields.items())
+                              for name, fields in cmd.variant_overrides().items()) + "."]
     others = [n for n in rows if n not in (SFT, ref) and rows[n]["paired_seeds"]]
     if others:
         lines += ["", f"Paired differences to `{ref}` per task (95 % t-interval over seeds):", "",

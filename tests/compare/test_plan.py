@@ -116,3 +116,48 @@ def test_a_setting_added_since_a_comparison_was_recorded_resumes_at_its_default(
         check_same_settings(path, {"algo": {"lr": 1e-4, "mean_correction": False}, "seed_free": 1}, defaults)
     with pytest.raises(ValueError, match="differs in: algo.lr"):  # a recorded one changed
         check_same_settings(path, {"algo": {"lr": 2e-4, "mean_correction": True}, "seed_free": 1}, defaults)
+
+
+def test_variant_set_tunes_one_variant_and_is_held_once_its_runs_exist(tmp_path, monkeypatch):
+    import json
+
+    from stepnft.config import save_config
+
+    save_config(bandit_config(iterations=4, episodes_per_iteration=10), tmp_path / "base.yaml")
+    monkeypatch.chdir(tmp_path)
+
+    def cmd(*variant_set, algos=("stepnft", "ppo", "beta-0.5")):
+        return CompareCommand(config="base.yaml", algos=list(algos), env_steps=100, out="cmp",
+                              variant_set=list(variant_set))
+
+    _, runs, _ = plan(cmd("ppo.lr=3e-5", "ppo.clip_coef=0.3", "beta-0.5.kl_beta=0.01"))
+    algo = {j.name: j.config.algo for j in runs}
+    assert algo["ppo_seed0"].lr == 3e-5 and algo["ppo_seed0"].clip_coef == 0.3 and algo["ppo_seed0"].name == "ppo"
+    assert algo["stepnft_seed0"].lr != 3e-5 and algo["beta-0.5_seed0"].beta == 0.5  # the variant's own kept
+    assert algo["beta-0.5_seed0"].kl_beta == 0.01  # a name with a dot: the longest variant that prefixes the key
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["variant_set"]["ppo"] == \
+        {"lr": 3e-5, "clip_coef": 0.3}
+    assert "--variant-set ppo.lr=3e-5 ppo.clip_coef=0.3 beta-0.5.kl_beta=0.01 --out cmp" in command_line(
+        cmd("ppo.lr=3e-5", "ppo.clip_coef=0.3", "beta-0.5.kl_beta=0.01"))
+    plan(cmd("ppo.lr=1e-5"))  # no ppo run folder yet: its settings may still change
+    (tmp_path / "cmp" / "runs" / "ppo").mkdir(parents=True)
+    with pytest.raises(ValueError, match=r"ran ppo with other --variant-set settings .*delete cmp/runs/ppo"):
+        plan(cmd("ppo.lr=3e-5"))
+    plan(cmd("ppo.lr=1e-5"))  # the same: resumes
+    for bad, match in [("ppo.lr", "expected VARIANT.FIELD=VALUE"), ("nope.lr=1", "expected VARIANT.FIELD=VALUE"),
+                       ("grpo.lr=1e-5", "grpo is not among --algos"), ("ppo.name=grpo", "algorithm is its own")]:
+        with pytest.raises(ValueError, match=match):
+            cmd(bad)
+    with pytest.raises(ValueError, match="--variant-set ppo: .*unknown config key 'algo.nope'"):
+        plan(CompareCommand(config="base.yaml", algos=["ppo"], env_steps=100, out="cmp2", variant_set=["ppo.nope=1"]))
+    with pytest.raises(ValueError, match="--variant-set ppo: .*lr"):
+        plan(CompareCommand(config="base.yaml", algos=["ppo"], env_steps=100, out="cmp3", variant_set=["ppo.lr=-1"]))
+
+
+def test_the_report_states_the_variant_settings():
+    from stepnft.compare.report import comparison_markdown
+
+    cmd = CompareCommand(algos=["stepnft", "ppo"], env_steps=100, variant_set=["ppo.lr=3e-5"])
+    text = comparison_markdown(cmd, {"columns": ["average"], "reference": "stepnft", "rows": {}},
+                               {"env_step_budget": 100, "eval": {"episodes": 5}}, {})
+    assert "--variant-set ppo.lr=3e-5" in text and "(`--variant-set`): ppo: lr=3e-05." in text
