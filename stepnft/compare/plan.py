@@ -72,7 +72,7 @@ def plan(cmd: CompareCommand) -> tuple[list[Job], list[Job], Path]:
     defaults = comparison_settings(TrainConfig(algo=type(base.algo)()))
     check_same_settings(out / "compare.json", comparison_settings(base), defaults)
     overrides = cmd.variant_overrides()
-    check_variant_settings(out / "compare.json", overrides, out / "runs")
+    check_variant_settings(out / "compare.json", overrides, out / "runs", cmd.algos)
     sft_jobs, run_jobs = [], []
     for seed in cmd.seeds:
         sft_dir = out / "sft" / f"seed{seed}"
@@ -136,12 +136,13 @@ def comparison_settings(base: TrainConfig) -> dict:
     return settings
 
 
-def check_variant_settings(path: Path, overrides: dict, runs: Path) -> None:
-    """Record ``--variant-set`` in ``compare.json`` (``variant_set``), or check a rerun asks for
-    the same: a variant's settings may change only while it has no run folder under ``runs``."""
+def check_variant_settings(path: Path, overrides: dict, runs: Path, algos: list[str]) -> None:
+    """Record ``--variant-set`` of the compared ``algos`` in ``compare.json`` (``variant_set``),
+    or check a rerun asks for the same: a variant's settings may change only while it has no run
+    folder under ``runs``. Variants a rerun does not compare keep what was recorded for them."""
     recorded = json.loads(path.read_text())
     old = recorded.get("variant_set", {})
-    new = json.loads(json.dumps(overrides))
+    new = {v: s for v, s in old.items() if v not in algos} | json.loads(json.dumps(overrides))
     changed = sorted(v for v in old.keys() | new.keys() if old.get(v) != new.get(v))
     started = [v for v in changed if (runs / v).exists()]
     if started:

@@ -144,6 +144,8 @@ def test_variant_set_tunes_one_variant_and_is_held_once_its_runs_exist(tmp_path,
     with pytest.raises(ValueError, match=r"ran ppo with other --variant-set settings .*delete cmp/runs/ppo"):
         plan(cmd("ppo.lr=3e-5"))
     plan(cmd("ppo.lr=1e-5"))  # the same: resumes
+    plan(cmd(algos=("stepnft",)))  # a rerun of other variants keeps ppo's record
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["variant_set"]["ppo"] == {"lr": 1e-5}
     for bad, match in [("ppo.lr", "expected VARIANT.FIELD=VALUE"), ("nope.lr=1", "expected VARIANT.FIELD=VALUE"),
                        ("grpo.lr=1e-5", "grpo is not among --algos"), ("ppo.name=grpo", "algorithm is its own")]:
         with pytest.raises(ValueError, match=match):
