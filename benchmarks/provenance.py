@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import platform
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -24,8 +25,9 @@ def commit() -> str:
 
 
 def command() -> str:
-    """The command line that is running, with the interpreter relative to the checkout."""
-    return " ".join([os.path.relpath(sys.executable, ROOT), *sys.argv])
+    """The command line that is running, with the interpreter relative to the checkout, quoted as
+    a shell reads it (an argument with spaces stays one argument)."""
+    return shlex.join([os.path.relpath(sys.executable, ROOT), *sys.argv])
 
 
 NUMERIC_PACKAGES = ("torch", "numpy", "scipy", "mujoco", "metaworld", "gymnasium")

@@ -15,14 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shlex
 import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from provenance import ROOT, commit  # noqa: E402
+from provenance import command, commit  # noqa: E402
 
 from stepnft.runs import read_metrics  # noqa: E402
 
@@ -63,11 +61,6 @@ def summarise(run: Path, last: int) -> dict:
         "validation": [(r["iteration"], r["charts/validation_success_rate"]) for r in records
                        if r.get("charts/validation_success_rate") is not None],
     }
-
-
-def command() -> str:
-    """This command line, quoted as a shell reads it (labels hold spaces)."""
-    return shlex.join([os.path.relpath(sys.executable, ROOT), *sys.argv])
 
 
 def fmt(x, spec=".2f") -> str:

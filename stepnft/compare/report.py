@@ -155,7 +155,8 @@ def task_differences_markdown(rows: dict, reference: str) -> list[str]:
                 continue
             names = sorted({t for mine, theirs in pairs.values() for t in mine if t in theirs})
             tasks += [t for t in names if t not in tasks]
-            diffs = {t: [mine[t] - theirs[t] for mine, theirs in pairs.values() if t in mine and t in theirs]
+            diffs = {t: paired_differences({s: mine.get(t) for s, (mine, _) in pairs.items()},
+                                           {s: theirs.get(t) for s, (_, theirs) in pairs.items()})
                      for t in names}
             body.append((name, suite, len(pairs), {t: mean_ci(d, -1.0, 1.0) for t, d in diffs.items()}
                          | {"average": mean_ci([x for d in diffs.values() for x in d], -1.0, 1.0)}))

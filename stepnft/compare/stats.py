@@ -129,15 +129,15 @@ def summarise_suites(cmd: CompareCommand, out: Path, reference: str) -> dict:
                 data = json.loads(path.read_text())  # one suite's result, or several under "suites"
                 results = data["suites"] if "suites" in data else {data["suite"]: data}
                 per_seed[seed] = summarize_suites(results)
-                per_task[(row, seed)] = {name: {t: v["success"] for t, v in r.get("tasks", {}).items()}
-                                         for name, r in results.items() if "average" in r}
+                per_task.setdefault(row, {})[seed] = {name: {t: v["success"] for t, v in r.get("tasks", {}).items()}
+                                                      for name, r in results.items() if "average" in r}
         table[row] = per_seed
     rows = {}
     for row, per_seed in table.items():
         ood = {s: r["ood_average"] for s, r in per_seed.items()}
         paired = paired_differences(ood, {s: r["ood_average"] for s, r in table.get(reference, {}).items()})
         rows[row] = {"seeds": len(per_seed), "per_seed": per_seed,
-                     "per_task": {s: per_task[(row, s)] for s in per_seed},
+                     "per_task": per_task.get(row, {}),
                      "success": {c: mean_ci([r[c] for r in per_seed.values() if r[c] is not None], 0.0, 1.0)
                                  for c in [*SUITE_NAMES, "ood_average"]},
                      "ood_diff": mean_ci(paired, -1.0, 1.0) if paired and row != reference else None}

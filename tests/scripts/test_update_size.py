@@ -44,3 +44,12 @@ def test_bad_input_is_one_line_and_exit_2(update_size, tmp_path, capsys):
             update_size.parse_args(argv)
         assert err.value.code == 2
     assert "no metrics.jsonl" in capsys.readouterr().err
+
+
+def test_the_recorded_command_keeps_a_label_with_spaces_one_argument(update_size, monkeypatch):
+    import shlex
+    import sys
+
+    argv = ["benchmarks/update_size.py", "runs/a", "--labels", "ppo lr 1e-4"]
+    monkeypatch.setattr(sys, "argv", argv)
+    assert shlex.split(update_size.command())[1:] == argv  # provenance.command, shared by every benchmark
