@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 from pathlib import Path
@@ -28,18 +29,33 @@ from stepnft.runs import read_metrics  # noqa: E402
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", help="run folders (each with a metrics.jsonl)")
-    p.add_argument("--labels", nargs="*", default=None, help="one label per run (default: the folder names)")
+    p.add_argument("--labels", nargs="*", default=None,
+                   help="one label per run (default: each folder's path below the folders' common parent)")
     p.add_argument("--last", type=int, default=5, help="iterations averaged as 'the last few' (default 5)")
     p.add_argument("--out", default=None, help="folder for update_size.md / .json (default: print only)")
     args = p.parse_args(argv)
     if args.labels is not None and len(args.labels) != len(args.runs):
         p.error(f"--labels: {len(args.labels)} labels for {len(args.runs)} runs")
+    if args.labels is not None and len(set(args.labels)) != len(args.labels):
+        p.error("--labels: each run needs its own label (a table row per label)")
+    if len({Path(r).resolve() for r in args.runs}) != len(args.runs):
+        p.error("a run folder is named twice")
     for run in args.runs:
         if not (Path(run) / "metrics.jsonl").is_file():
             p.error(f"{run}: no metrics.jsonl (not a run folder)")
     if args.last < 1:
         p.error("--last must be >= 1")
     return args
+
+
+def default_labels(runs: list[str]) -> list[str]:
+    """Each run's path below the runs' common parent (``ppo/seed1``, ``grpo/seed1``): the folder
+    names alone collide across the variants of a comparison."""
+    paths = [Path(r).resolve() for r in runs]
+    if len(paths) == 1:
+        return [paths[0].name]
+    parent = Path(os.path.commonpath(paths))
+    return [str(p.relative_to(parent)) for p in paths]
 
 
 def summarise(run: Path, last: int) -> dict:
@@ -81,7 +97,7 @@ def table(rows: dict[str, dict], last: int) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    labels = args.labels or [Path(r).name for r in args.runs]
+    labels = args.labels or default_labels(args.runs)
     rows = {label: summarise(Path(run), args.last) for label, run in zip(labels, args.runs)}
     text = table(rows, args.last)
     print(text)

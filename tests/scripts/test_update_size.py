@@ -53,3 +53,14 @@ def test_the_recorded_command_keeps_a_label_with_spaces_one_argument(update_size
     argv = ["benchmarks/update_size.py", "runs/a", "--labels", "ppo lr 1e-4"]
     monkeypatch.setattr(sys, "argv", argv)
     assert shlex.split(update_size.command())[1:] == argv  # provenance.command, shared by every benchmark
+
+
+def test_runs_of_one_seed_in_different_variants_get_their_own_rows(update_size, tmp_path):
+    for variant in ("ppo", "grpo"):
+        write_run(tmp_path / variant / "seed1", [{"iteration": 0, "env_steps": 0}])
+    assert update_size.default_labels([str(tmp_path / "ppo/seed1"), str(tmp_path / "grpo/seed1")]) == [
+        "ppo/seed1", "grpo/seed1"]
+    assert update_size.default_labels([str(tmp_path / "ppo/seed1")]) == ["seed1"]
+    with pytest.raises(SystemExit) as err:
+        update_size.parse_args([str(tmp_path / "ppo/seed1"), str(tmp_path / "grpo/seed1"), "--labels", "x", "x"])
+    assert err.value.code == 2
