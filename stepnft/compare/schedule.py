@@ -140,13 +140,23 @@ def schedule(run: Callable[[Job], dict], stop: Callable[[], None], first: list[J
              workers: int, record: Callable[[Job, dict], None]) -> None:
     """Run ``first`` on ``workers`` threads, and the jobs ``then[job.name]`` once ``job`` succeeded
     (recorded as :data:`NOT_RUN` when it failed); ``record(job, result)`` as each ends, in this
-    thread. On any exception (KeyboardInterrupt too) ``stop()`` ends the running jobs, whose
-    results are recorded, and the exception propagates; the pool is shut down on every exit."""
+    thread. A free thread takes a waiting ``eval`` job before any other (in order otherwise):
+    a finished run's suites take minutes and complete its results, rather than waiting behind
+    every run not yet started. On any exception (KeyboardInterrupt too) ``stop()`` ends the
+    running jobs, whose results are recorded, and the exception propagates; the pool is shut
+    down on every exit."""
     pool = ThreadPoolExecutor(max_workers=workers)
     pending: dict[Future, Job] = {}
-    try:
-        for job in first:
+    waiting = list(first)
+
+    def start_free() -> None:
+        while waiting and len(pending) < workers:
+            job = next((j for j in waiting if j.kind == "eval"), waiting[0])
+            waiting.remove(job)
             pending[pool.submit(run, job)] = job
+
+    try:
+        start_free()
         while pending:
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in done:
@@ -155,9 +165,10 @@ def schedule(run: Callable[[Job], dict], stop: Callable[[], None], first: list[J
                 record(job, result)
                 for follower in then.get(job.name, []):
                     if result["rc"] == 0:
-                        pending[pool.submit(run, follower)] = follower
+                        waiting.append(follower)
                     else:
                         record(follower, NOT_RUN)
+            start_free()
     except BaseException:
         stop()
         pool.shutdown(wait=True, cancel_futures=True)

@@ -106,3 +106,18 @@ def test_a_job_whose_predecessor_did_not_finish_is_recorded_as_not_run_not_as_cr
     assert entries["suites_ppo_seed0"]["attempts"] == 0
     assert "interrupted" in lines[0] and "not run: the job it follows did not finish" in lines[1]
     assert "CRASHED (exit code 2" in lines[2] and "CRASHED" not in lines[1]
+
+
+def test_a_finished_runs_suites_go_before_the_runs_still_waiting(tmp_path):
+    ran = []
+
+    def run(job):
+        ran.append(job.name)
+        return {"rc": 0, "wall_clock_s": 1.0, "skipped": False}
+
+    train = [Job(f"{v}_seed0", "train", tmp_path / v, None) for v in ("a", "b", "c")]
+    then = {"sft_seed0": train, "a_seed0": [eval_job(tmp_path, "suites_a_seed0")],
+            "b_seed0": [eval_job(tmp_path, "suites_b_seed0")]}
+    schedule(run, lambda: None, [eval_job(tmp_path, "sft_seed0")], then, 1, lambda job, result: None)
+    # One thread: a's suites run before b and c, which waited since the SFT finished.
+    assert ran == ["sft_seed0", "a_seed0", "suites_a_seed0", "b_seed0", "suites_b_seed0", "c_seed0"]
