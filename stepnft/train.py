@@ -57,14 +57,14 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         if not resume:
             logger.log({"iteration": 0, "env_steps": 0, **_eval_record(run.progress.before, "test"),
                         **_eval_record(run.progress.validation, "validation")})
-        bar = stack.enter_context(tqdm(total=cfg.iterations, initial=run.progress.iteration, desc=cfg.algo.name))
+        bar = stack.enter_context(progress_bar(cfg, run.progress))
         while run.progress.iteration < cfg.iterations and not run.out_of_budget():
             record = run.iterate()
             last = run.progress.iteration == cfg.iterations or run.out_of_budget()
             if cfg.eval.every and (run.progress.iteration % cfg.eval.every == 0 or last):
                 record |= run.validate()
             logger.log(record)
-            bar.update(1)
+            bar.update(bar_position(cfg, run.progress) - bar.n)
             bar.set_postfix(rollout=f"{record['charts/rollout_success_rate']:.2f}",
                             best=f"{run.progress.best['validation'] or 0:.2f}@{run.progress.best['iteration']}",
                             refresh=False)
@@ -236,6 +236,24 @@ class Progress:
             yield
         finally:
             self.time_s[phase] = self.time_s.get(phase, 0.0) + time.perf_counter() - start
+
+
+def progress_bar(cfg: TrainConfig, progress: Progress, **options) -> tqdm:
+    """The run's progress bar: in env steps when the run ends on ``env_step_budget`` (its
+    ``iterations`` is then only a cap, often far beyond what the budget allows, which made an
+    iteration bar read 1 % and estimate days), else in iterations."""
+    if cfg.env_step_budget is not None:
+        return tqdm(total=cfg.env_step_budget, initial=bar_position(cfg, progress), desc=cfg.algo.name,
+                    unit=" env steps", unit_scale=True, **options)
+    return tqdm(total=cfg.iterations, initial=progress.iteration, desc=cfg.algo.name, unit="it", **options)
+
+
+def bar_position(cfg: TrainConfig, progress: Progress) -> int:
+    """Where :func:`progress_bar` stands: env steps (capped at the budget: the last iteration
+    overshoots it) or iterations."""
+    if cfg.env_step_budget is not None:
+        return min(progress.env_steps, cfg.env_step_budget)
+    return progress.iteration
 
 
 def _finish(run: TrainingRun, logger: MetricLogger, sim, log) -> dict:

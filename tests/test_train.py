@@ -337,3 +337,19 @@ def test_a_torn_metrics_line_is_dropped_on_resume_with_a_warning(finished_run, t
     path.write_text('{"iteration": 1}\nnot json\n{"iteration": 2}\n')
     with pytest.raises(ValueError, match="metrics.jsonl line 2 is not valid JSON"):
         read_metrics(path, drop_torn_tail=True)
+
+
+def test_a_run_on_an_env_step_budget_counts_its_progress_in_env_steps():
+    # The compare runs end on a budget with `iterations` only a cap (6,250): an iteration bar
+    # read 1 % at the end of such a run and estimated days.
+    from stepnft.config import TrainConfig
+    from stepnft.train import Progress, bar_position, progress_bar
+
+    on_budget = TrainConfig(iterations=6250, env_step_budget=300_000)
+    with progress_bar(on_budget, Progress(iteration=20, env_steps=120_000), disable=True) as bar:
+        assert (bar.total, bar.n) == (300_000, 120_000)
+    assert bar_position(on_budget, Progress(iteration=50, env_steps=301_067)) == 300_000  # the last overshoots
+    on_iterations = TrainConfig(iterations=40)
+    with progress_bar(on_iterations, Progress(iteration=3, env_steps=120_000), disable=True) as bar:
+        assert (bar.total, bar.n) == (40, 3)
+    assert bar_position(on_iterations, Progress(iteration=4, env_steps=130_000)) == 4
