@@ -245,7 +245,7 @@ def progress_bar(cfg: TrainConfig, progress: Progress, **options) -> tqdm:
     if cfg.env_step_budget is not None:
         return tqdm(total=cfg.env_step_budget, initial=bar_position(cfg, progress), desc=cfg.algo.name,
                     unit=" env steps", unit_scale=True, **options)
-    return tqdm(total=cfg.iterations, initial=progress.iteration, desc=cfg.algo.name, unit="it", **options)
+    return tqdm(total=cfg.iterations, initial=bar_position(cfg, progress), desc=cfg.algo.name, unit="it", **options)
 
 
 def bar_position(cfg: TrainConfig, progress: Progress) -> int:
