@@ -60,6 +60,21 @@ def test_recorded_seeds_are_reused_and_paired_without_their_folders(learning, tm
     table = (tmp_path / "mine" / "learning.md").read_text()
     assert "| +0.20" in table  # 0.7 - 0.5 on both tasks, from other's learning.json alone
     assert (tmp_path / "mine" / "learning.png").is_file()
+    assert table.rstrip().endswith("| same |")  # both started from the SFT policy of 0.4
+
+
+def test_a_change_that_reaches_sft_is_paired_as_a_whole_recipe(learning, tmp_path, monkeypatch):
+    """sft.image_shift=0 trains another SFT policy from the same demonstrations: the seeds still
+    pair, and the table shows how far apart the SFT starts were."""
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    args = ["--config", config, "--tasks", *TASKS, "--set", "sft.lr=0.001"]
+    publish(tmp_path / "mine", args, [run(0, 0.3, 0.6), run(1, 0.5, 0.8)], learning)
+    publish(tmp_path / "other", args[:-2], [run(0, 0.4, 0.5), run(1, 0.6, 0.9)], learning)
+    monkeypatch.setattr(learning, "train", lambda cfg, resume=False: pytest.fail("reran a recorded seed"))
+    learning.main([*args, "--seeds", "0", "1", "--out", str(tmp_path / "mine"), "--paired-with", str(tmp_path / "other")])
+    row = (tmp_path / "mine" / "learning.md").read_text().rstrip().splitlines()[-1]
+    assert "| 2 |" in row and "**+0.00" in row  # +0.1 and -0.1 on every task
+    assert row.endswith("| -0.10 [-0.10, -0.10] (whole recipe) |")  # both SFT starts 0.1 lower
 
 
 def test_a_recorded_seed_with_other_arguments_is_not_reused(learning, tmp_path, monkeypatch):
