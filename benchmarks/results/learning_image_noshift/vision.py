@@ -15,13 +15,16 @@ learning_image's run folders are not kept). Prints markdown; ``> vision.md`` kee
     .venv/bin/python benchmarks/results/learning_image_noshift/vision.py > benchmarks/results/learning_image_noshift/vision.md
 """
 import json
-import subprocess
+import sys
 from pathlib import Path
 
 from stepnft.compare import mean_ci
 from stepnft.evaluate import format_ci
 
 ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from provenance import commit  # noqa: E402
+
 TASKS = ["door-open-v3", "button-press-topdown-v3", "faucet-open-v3"]
 SHIFT = ROOT / "benchmarks/results/compare_image_ood/suites"
 NOSHIFT = ROOT / "benchmarks/results/learning_image_noshift/suites"
@@ -45,5 +48,4 @@ for label, mine, theirs in [("SFT", "sft_policy", "sft"), ("π-StepNFT", "policy
         diffs += [x[t] - y[t] for t in TASKS]
     print(f"| {label} | {sum(a) / 3:.2f} ({', '.join(f'{v:.2f}' for v in a)}) | {sum(b) / 3:.2f} "
           f"({', '.join(f'{v:.2f}' for v in b)}) | {format_ci(mean_ci(diffs, -1, 1), signed=True)} |")
-head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-print(f"\nVision suite, 50 episodes per task; the no-shift suites ran on commit 175e0ec; table written on {head}.")
+print(f"\nVision suite, 50 episodes per task; the no-shift suites ran on commit 175e0ec; table written on {commit()}.")
