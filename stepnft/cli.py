@@ -242,6 +242,22 @@ def _named_folders(*flags: tuple[str, str]) -> None:
             raise UsageError(f"{flag} must name a folder, got {path!r}")
 
 
+def _check_rendering(env_cfg, renders: bool) -> None:
+    """A command that renders (camera observations, videos) on a simulator that renders through
+    MuJoCo's OpenGL checks ``MUJOCO_GL`` once, before any work (``stepnft.envs.rendering``)."""
+    from stepnft.envs import SIMULATORS
+    from stepnft.envs.rendering import check_gl_platform
+
+    info = SIMULATORS.get(env_cfg.name)
+    if renders and info is not None and info.opengl:
+        check_gl_platform()
+
+
+def _renders(cfg) -> bool:
+    """Whether a run renders: camera observations, or videos of its final policy."""
+    return bool(cfg.env.cameras) or cfg.eval.videos > 0
+
+
 def cmd_demos(argv: list[str]) -> int:
     from stepnft.data.demos import check_task_episodes, generate_demos
     from stepnft.envs import get_simulator
@@ -250,6 +266,7 @@ def cmd_demos(argv: list[str]) -> int:
 
     args = _parse(DemosCommand, argv, DemosCommand(), "stepnft demos")
     _named_folders(("--demos.path", args.demos.path))
+    _check_rendering(args.env, bool(args.env.cameras))
     sim = get_simulator(args.env.name)
     tasks = sim.validate_tasks(args.env.tasks)
     check_task_episodes(args.demos, sim)
@@ -271,6 +288,7 @@ def cmd_sft(argv: list[str]) -> int:
 
     cfg, _ = _config_from_argv(argv, "stepnft sft", allow_resume=False)
     _named_folders(("--run-dir", cfg.run_dir), ("--demos.path", cfg.demos.path))
+    _check_rendering(cfg.env, _renders(cfg))
     run_sft(cfg)
     return 0
 
@@ -280,6 +298,7 @@ def cmd_train(argv: list[str]) -> int:
 
     cfg, resume = _config_from_argv(argv, "stepnft train", allow_resume=True)
     _named_folders(("--run-dir", cfg.run_dir), ("--demos.path", cfg.demos.path))
+    _check_rendering(cfg.env, _renders(cfg))
     train(cfg, resume=resume)
     return 0
 
@@ -300,6 +319,7 @@ def cmd_eval(argv: list[str]) -> int:
     sim = get_simulator(args.env.name)
     args.env.tasks = sim.validate_tasks(args.env.tasks)
     suites = check_suites(args.suite)
+    _check_rendering(args.env, bool(args.video_dir or args.env.cameras or _policy_cameras(args.policy)))
     # Fail on an output that cannot be written before spending time on the policy and episodes.
     out = _eval_out(args.out) if args.out else None
     video_dir = check_folder(args.video_dir, "videos", "--video-dir") if args.video_dir else None
@@ -324,6 +344,17 @@ def cmd_eval(argv: list[str]) -> int:
             return 1
         print(f"wrote {len(paths)} videos to {video_dir}")
     return 0
+
+
+def _policy_cameras(path: str) -> list[str]:
+    """The cameras of the policy saved at ``path``; none when it cannot be read (that error comes
+    later, where the policy is loaded)."""
+    from stepnft.policies.base import load_policy_config
+
+    try:
+        return list(load_policy_config(path).cameras)
+    except (ValueError, OSError):
+        return []
 
 
 def _eval_out(path: str) -> Path:
@@ -384,8 +415,12 @@ def cmd_demo_bandit(argv: list[str]) -> int:
 
 def cmd_compare(argv: list[str]) -> int:
     from stepnft.compare import CompareCommand, help_text, run_compare
+    from stepnft.config import load_config
 
-    return run_compare(_parse(CompareCommand, argv, CompareCommand(), "stepnft compare", help_text()))
+    cmd = _parse(CompareCommand, argv, CompareCommand(), "stepnft compare", help_text())
+    base = load_config(cmd.config)  # its runs render what it renders (--tasks and the rest change nothing of it)
+    _check_rendering(base.env, _renders(base))
+    return run_compare(cmd)
 
 
 HANDLERS = {"demos": cmd_demos, "sft": cmd_sft, "train": cmd_train, "eval": cmd_eval, "demo-bandit": cmd_demo_bandit,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import math
 import re
 import typing
 from dataclasses import dataclass, field
@@ -27,7 +28,8 @@ from stepnft.devices import check_device_name
 from stepnft.envs import DEFAULT_TASKS, SIMULATORS
 from stepnft.envs.perturbations import FAMILY, expand
 from stepnft.policies.flow import FlowPolicyConfig
-from stepnft.settings import Check, Range, Settings
+from stepnft.settings import (DEMO_EPISODES_MAX, EVAL_SEEDS_END, ITERATIONS_MAX, SEED_MAX, Check, Range, Settings,
+                              read_settings_text)
 
 DEVICE = Check(check_device_name, "cpu, cuda or cuda:N")
 """The devices a policy may compute on (``--device``)."""
@@ -47,14 +49,14 @@ class EnvConfig(Settings):
     optional extra stepnft[maniskill]; docs/maniskill.md)."""
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """Task names (space- or comma-separated); one multi-task policy serves all of them."""
-    envs_per_task: Annotated[int, Range(ge=1)] = 4
+    envs_per_task: Annotated[int, Range(ge=1, le=4096)] = 4
     """Parallel simulator instances per task: each plays its task's episodes back to back
     (more of them shorten the tail of an iteration whose allocation favours one task)."""
-    max_episode_steps: Annotated[int, Range(ge=1)] = 200
+    max_episode_steps: Annotated[int, Range(ge=1, le=10**5)] = 200
     """Episode cap in env steps (MetaWorld allows at most 500)."""
     terminate_on_success: bool = True
     """End an episode at its first success (the episode then counts as a success)."""
-    num_workers: Annotated[int, Range(ge=0)] = 0
+    num_workers: Annotated[int, Range(ge=0, le=256)] = 0
     """Simulator processes stepping at once (0: all sub-envs in this process; 2 uses both
     cores of a 2-core machine)."""
     sim_backend: Literal["cpu", "gpu"] = "cpu"
@@ -113,14 +115,14 @@ class DemoConfig(Settings):
 
     path: str = "demos/default"
     """Folder of demonstrations (generated there if missing)."""
-    episodes: Annotated[int, Range(ge=1)] = 5
+    episodes: Annotated[int, Range(ge=1, le=DEMO_EPISODES_MAX)] = 5
     """Successful demonstrations per task (few-shot)."""
-    task_episodes: dict[str, Annotated[int, Range(ge=1)]] = field(default_factory=dict)
+    task_episodes: dict[str, Annotated[int, Range(ge=1, le=DEMO_EPISODES_MAX)]] = field(default_factory=dict)
     """Per-task overrides of ``episodes`` (e.g. fewer on tasks SFT already saturates)."""
-    max_attempts: Annotated[int | None, Range(ge=1)] = None
+    max_attempts: Annotated[int | None, Range(ge=1, le=DEMO_EPISODES_MAX)] = None
     """Expert episodes tried per task before giving up (None: 5 x the demonstrations wanted);
     failed attempts are discarded and counted in the manifest."""
-    action_noise: Annotated[float, Range(ge=0)] = 0.0
+    action_noise: Annotated[float, Range(ge=0, le=10)] = 0.0
     """Std of Gaussian noise added to the expert's actions."""
     dart: bool = False
     """With ``action_noise``: execute the noisy action but record the expert's clean one for
@@ -129,7 +131,7 @@ class DemoConfig(Settings):
     successful_only: bool = True
     """Keep only the expert's successful episodes (False: keep every attempt, e.g. for a
     deliberately imperfect demonstrator)."""
-    seed: Annotated[int, Range(ge=0)] = 0
+    seed: Annotated[int, Range(ge=0, le=SEED_MAX)] = 0
     """Seed of the demonstrations' initial states (disjoint from evaluation states)."""
 
     def check(self) -> None:
@@ -151,22 +153,26 @@ class EvalConfig(Settings):
 
     section: ClassVar[str] = "eval"
 
-    episodes: Annotated[int, Range(ge=0)] = 100
+    episodes: Annotated[int, Range(ge=0, le=EVAL_SEEDS_END)] = 100
     """Episodes per task for the before/after figures (>= 100 for reported numbers)."""
-    seed: Annotated[int, Range(ge=0)] = 0
+    seed: Annotated[int, Range(ge=0, lt=EVAL_SEEDS_END)] = 0
     """Test episode e of a task starts from initial state ``seed + e``: the same for every checkpoint."""
-    every: Annotated[int, Range(ge=0)] = 10
+    every: Annotated[int, Range(ge=0, le=ITERATIONS_MAX)] = 10
     """Iterations between validation evaluations during training (0: only before and after)."""
-    during_episodes: Annotated[int, Range(ge=1)] = 20
+    during_episodes: Annotated[int, Range(ge=1, le=EVAL_SEEDS_END)] = 20
     """Episodes per task for the validation evaluations during training (cheap, noisier)."""
-    validation_seed: Annotated[int, Range(ge=0)] = 1_000_000
+    validation_seed: Annotated[int, Range(ge=0, lt=EVAL_SEEDS_END)] = 1_000_000
     """Validation episode e starts from initial state ``validation_seed + e``: disjoint from the
     test states, so choosing ``best_policy/`` on them does not bias the reported figures."""
-    videos: Annotated[int, Range(ge=0)] = 0
+    videos: Annotated[int, Range(ge=0, le=1000)] = 0
     """Episodes per task filmed after the final evaluation, into RUN/videos/*.mp4 and TensorBoard
     (camera policies: what the policy saw beside the scene); needs MUJOCO_GL=egl. 0: none."""
 
     def check(self) -> None:
+        if self.seed + self.episodes > EVAL_SEEDS_END or self.validation_seed + self.during_episodes > EVAL_SEEDS_END:
+            raise self.fail(f"{{seed}} + {{episodes}} and {{validation_seed}} + {{during_episodes}} must be at most "
+                            f"{EVAL_SEEDS_END} (evaluation states stay below the training episodes' seeds), got "
+                            f"{self.seed + self.episodes} and {self.validation_seed + self.during_episodes}")
         if self.validation_seed < self.seed + self.episodes:
             raise self.fail(f"{{validation_seed}} ({self.validation_seed}) must be >= {{seed}} + {{episodes}} "
                             f"({self.seed + self.episodes}): validation and test states must not overlap")
@@ -179,17 +185,17 @@ class RayConfig(Settings):
 
     section: ClassVar[str] = "ray"
 
-    workers: Annotated[int, Range(ge=0)] = 0
+    workers: Annotated[int, Range(ge=0, le=4096)] = 0
     """Ray rollout workers (0: collect in this process, the default); sub-env i plays on worker
     i mod N, and evaluation runs on them too. Each reserves max(1, env.num_workers) CPUs: with
     --env.num-workers 0 a worker is one core."""
     address: Annotated[str | None, Check(lambda address: bool(address.strip()), "a cluster address")] = None
     """Ray cluster to join (``auto``, ``HOST:6379`` or ``ray://HOST:10001``); None: start a
     local Ray with the CPUs the workers reserve."""
-    timeout_s: Annotated[float, Range(gt=0)] = 600.0
+    timeout_s: Annotated[float, Range(gt=0, le=7 * 86400)] = 600.0
     """Seconds a worker may take to start or to play its part of an iteration before it counts
     as hung: it is killed and restarted, its episodes of that part dropped."""
-    max_restarts: Annotated[int, Range(ge=0)] = 3
+    max_restarts: Annotated[int, Range(ge=0, le=1000)] = 3
     """Times each worker may be lost (crash, timeout, node loss) and restarted before the run
     stops with an error (then `stepnft train --resume RUN_DIR`)."""
 
@@ -216,11 +222,11 @@ class TrainConfig(Settings):
 
     run_dir: str = "runs/stepnft"
     """Output folder: config.yaml, metrics.jsonl, TensorBoard logs, checkpoints, curves, summary."""
-    seed: Annotated[int, Range(ge=0)] = 0
+    seed: Annotated[int, Range(ge=0, le=SEED_MAX)] = 0
     """Seeds every source of randomness (torch, sampler noise, simulator)."""
-    iterations: Annotated[int, Range(ge=0)] = 60
+    iterations: Annotated[int, Range(ge=0, le=ITERATIONS_MAX)] = 60
     """RL iterations: collect rollouts -> update -> end-of-iteration step (e.g. the EMA update)."""
-    episodes_per_iteration: Annotated[int, Range(ge=1)] = 20
+    episodes_per_iteration: Annotated[int, Range(ge=1, le=10**6)] = 20
     """Episodes collected per iteration (with ``task_allocation: equal``, split evenly over the
     tasks, each task's share rounded up to whole groups)."""
     task_allocation: Literal["equal", "informative"] = "equal"
@@ -228,16 +234,16 @@ class TrainConfig(Settings):
     tasks whose rollout success is far from 0 and 1; see stepnft.rollout.allocation)."""
     allocation_floor: Annotated[float, Range(ge=0, le=1)] = 0.3
     """With ``informative``: the share of episodes split equally, so every task stays in play."""
-    env_step_budget: Annotated[int | None, Range(ge=1)] = None
+    env_step_budget: Annotated[int | None, Range(ge=1, le=10**12)] = None
     """Stop once this many rollout env steps were spent (None: run all iterations); the
     same budget for every algorithm makes comparisons fair."""
     init: Annotated[str | None, PATH] = None
     """Saved policy folder to start from; None: run few-shot SFT on the demonstrations first.
     ``stepnft sft --init``: the policy SFT fine-tunes (any type, e.g. a LeRobot SmolVLA folder,
     whose sizes then replace the --policy.* ones; docs/lerobot.md)."""
-    checkpoint_every: Annotated[int, Range(ge=1)] = 10
+    checkpoint_every: Annotated[int, Range(ge=1, le=ITERATIONS_MAX)] = 10
     """Iterations between checkpoints (the last one is always written)."""
-    num_threads: Annotated[int, Range(ge=1)] = 1
+    num_threads: Annotated[int, Range(ge=1, le=1024)] = 1
     """torch CPU threads (the policy is small: one thread is fastest, and leaves a core to the simulator)."""
     device: Annotated[str, DEVICE] = "cpu"
     """Where the policy, its EMA copy, PPO's critic and the optimizer state live and compute: cpu,
@@ -287,7 +293,7 @@ class EvalCommand(Settings):
     video_dir: Annotated[str | None, PATH] = None
     """Also record ODE episodes as ``DIR/<task>_ep<e>_<success|fail>.mp4`` (needs offscreen
     rendering: MUJOCO_GL=egl)."""
-    video_episodes: Annotated[int, Range(ge=1)] = 1
+    video_episodes: Annotated[int, Range(ge=1, le=1000)] = 1
     """Episodes recorded per task with --video-dir (episode e starts from eval state seed + e)."""
     suite: list[str] = field(default_factory=lambda: ["ind"])
     """Evaluation suites: ind (the training distribution), vision, semantic, execution (held-out
@@ -349,9 +355,51 @@ _Loader.add_implicit_resolver(
 )
 
 
+YAML_NODES_MAX = 100_000
+"""The most values a YAML config may hold once its aliases are expanded (a run's config.yaml
+holds about 200): anchors and aliases can make a small file stand for billions of values (the
+"billion laughs"), which every later step would walk."""
+
+
 def read_yaml(text: str):
-    """Parse YAML ``text`` as config files are read (``3e-5`` is a number)."""
-    return yaml.load(text, Loader=_Loader)
+    """Parse YAML ``text`` as config files are read (``3e-5`` is a number): ``yaml.YAMLError`` if it
+    is no YAML, ValueError (one line, "expands to ...") if it expands beyond :data:`YAML_NODES_MAX`
+    values or nests too deeply."""
+    loader = _Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if _expanded_size(node) > YAML_NODES_MAX:
+            raise ValueError(f"expands to more than {YAML_NODES_MAX} values (anchors and aliases used many times "
+                             "over, or an alias inside its own anchor): write the values out")
+        return loader.construct_document(node)
+    except RecursionError:
+        raise ValueError("nests too deeply to be a config (lists or mappings inside each other hundreds of times)") from None
+    finally:
+        loader.dispose()
+
+
+def _expanded_size(root: yaml.Node) -> float:
+    """Values under ``root`` with every alias expanded where it is used (inf for an alias inside
+    its own anchor); each distinct node is visited once."""
+    sizes: dict[int, float] = {}
+    open_nodes: set[int] = set()
+
+    def size(node: yaml.Node) -> float:
+        if id(node) in sizes:
+            return sizes[id(node)]
+        if id(node) in open_nodes:
+            return math.inf
+        open_nodes.add(id(node))
+        children = (node.value if isinstance(node, yaml.SequenceNode)
+                    else [n for pair in node.value for n in pair] if isinstance(node, yaml.MappingNode) else [])
+        total = 1 + sum(size(child) for child in children)
+        open_nodes.discard(id(node))
+        sizes[id(node)] = total
+        return total
+
+    return size(root)
 
 
 def load_config(path: str | Path, cls=TrainConfig):
@@ -361,10 +409,13 @@ def load_config(path: str | Path, cls=TrainConfig):
         raise ValueError(f"config file {path} is a folder: give a YAML file (a run's config is RUN/config.yaml)")
     if not path.is_file():
         raise ValueError(f"config file {path} not found")
+    text = read_settings_text(path)
     try:
-        data = read_yaml(path.read_text()) or {}
+        data = read_yaml(text) or {}
     except yaml.YAMLError as err:
         raise ValueError(f"config file {path} is not valid YAML: {str(err).splitlines()[0]}") from err
+    except ValueError as err:
+        raise ValueError(f"config file {path} {err}") from None
     try:
         return from_dict(cls, data)
     except ValueError as err:

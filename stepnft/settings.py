@@ -25,7 +25,10 @@ declared type       accepted value
 a dataclass         an instance of it (a nested section)
 ==================  ===========================================================================
 
-``Range(gt=, ge=, lt=, le=)`` bounds a number; ``Check(predicate, description)`` states any other
+``Range(gt=, ge=, lt=, le=)`` bounds a number, and every number has an upper bound the work can
+honour (a test walks every settings class for it), so a huge value is refused with its flag's name
+before anything is allocated for it; the bounds several settings share are declared below
+(``SEED_MAX``, ``EVAL_SEEDS_END``, ``ITERATIONS_MAX``, ``WIDTH_MAX``, ``DEMO_EPISODES_MAX``). ``Check(predicate, description)`` states any other
 rule of one value. Rules between fields are a config's :meth:`Settings.check`. A bad value is a
 :class:`SettingError` that names the setting the way the user wrote it: ``algo.lr`` (YAML) or
 ``--algo.lr`` (flags). This module is a low layer: it imports nothing of stepnft but names.
@@ -40,9 +43,29 @@ import re
 import types
 import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, ClassVar, Literal, Union
 
 from stepnft.names import split_names
+
+SEED_MAX = 2**31 - 1
+"""The largest run seed (``seed``, ``demos.seed``): every generator it reaches takes it (numpy,
+torch, MuJoCo's and ManiSkill's RandomState, which stop at 2**32), offsets included."""
+EVAL_SEEDS_END = 2**24
+"""Evaluation initial states (test and validation, ``eval.seed + e``) have seeds below this;
+training episodes' reset seeds start here (``stepnft.rollout.plan.TRAINING_SEEDS``), so the two
+never meet."""
+ITERATIONS_MAX = 10**8
+"""The most RL iterations a run (and any setting counted in iterations) may name."""
+WIDTH_MAX = 16384
+"""The widest layer or feature vector a policy or critic may declare (a 16k x 16k layer is 1 GiB
+of float32 weights)."""
+SETTINGS_FILE_BYTES_MAX = 1 << 20
+"""The largest settings file read (a YAML config, a policy's config.json): 1 MiB, against a few
+kilobytes for a real one, so a huge file is refused before it is read."""
+DEMO_EPISODES_MAX = 2**20
+"""Demonstration attempts per task: attempt k of seed s resets from ``2**32 + s * 2**20 + k``
+(``stepnft.data.demos.demo_seed``), so more would reuse another seed's initial states."""
 
 
 @dataclass(frozen=True)
@@ -59,13 +82,18 @@ class Range:
                 and (self.lt is None or x < self.lt) and (self.le is None or x <= self.le))
 
     def __str__(self) -> str:
-        low = f"[{self.ge:g}" if self.ge is not None else f"({self.gt:g}" if self.gt is not None else None
-        high = f"{self.le:g}]" if self.le is not None else f"{self.lt:g})" if self.lt is not None else None
+        low = f"[{_number(self.ge)}" if self.ge is not None else f"({_number(self.gt)}" if self.gt is not None else None
+        high = f"{_number(self.le)}]" if self.le is not None else f"{_number(self.lt)})" if self.lt is not None else None
         if low and high:
             return f"in {low}, {high}"
         if low:
             return f"{'>=' if low[0] == '[' else '>'} {low[1:]}"
         return f"{'<=' if high[-1] == ']' else '<'} {high[:-1]}" if high else ""
+
+
+def _number(x: float) -> str:
+    """A bound as written: integral ones exactly (``2147483647``), others short (``1e-06``)."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
 
 
 @dataclass(frozen=True)
@@ -102,6 +130,20 @@ class SettingError(ValueError):
     def as_flags(self) -> str:
         """The message with every setting named by its command-line flag."""
         return self._render(lambda key: "--" + key.replace("_", "-"))
+
+
+def read_settings_text(path: str | Path, what: str = "config file") -> str:
+    """The text of settings file ``path``; a ValueError with one line when it is larger than
+    :data:`SETTINGS_FILE_BYTES_MAX` (checked before reading) or not UTF-8."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size > SETTINGS_FILE_BYTES_MAX:
+        raise ValueError(f"{what} {path} is {size} bytes: settings files are at most {SETTINGS_FILE_BYTES_MAX} "
+                         "bytes (is it the right file?)")
+    try:
+        return path.read_text()
+    except UnicodeDecodeError:
+        raise ValueError(f"{what} {path} is not UTF-8 text (is it the right file?)") from None
 
 
 class Settings:

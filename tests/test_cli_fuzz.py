@@ -6,7 +6,12 @@ checks come before any env is built, so a case takes milliseconds."""
 
 from __future__ import annotations
 
+import ctypes.util
 import dataclasses
+import os
+import re
+import subprocess
+import sys
 import typing
 from types import UnionType
 from typing import Literal, Union
@@ -21,7 +26,7 @@ from stepnft.cli import main
 from stepnft.compare import CompareCommand
 from stepnft.config import DemosCommand, EvalCommand, TrainConfig
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
-from stepnft.settings import Range
+from stepnft.settings import SETTINGS_FILE_BYTES_MAX, Range
 
 
 def flags(cls, prefix: str = "") -> list[tuple[str, object]]:
@@ -57,6 +62,11 @@ def _out_of_range(ranges: list[Range], number: type) -> list[str]:
     return values
 
 
+EXTREME = {int: [str(2**70), str(-(2**70))], float: ["1e308", "-1e308"]}
+"""The "extreme value" row of every numeric flag: past every bound and every C integer (a seed of
+2**70 once reached numpy as an OverflowError, 3e9 episodes a 22 GiB allocation)."""
+
+
 def bad_values(hint) -> list[list[str]]:
     """Bad arguments for a flag of declared type ``hint``: the wrong type, non-finite, out of
     its range, empty, unicode."""
@@ -66,9 +76,9 @@ def bad_values(hint) -> list[list[str]]:
         return [["maybe"]]  # a switch takes no value
     # (Python's int() and float() read some unicode digits, "٣" as 3: not those)
     if hint is int:
-        return [[v] for v in ["1.5", "x", "五", "", *_out_of_range(ranges, int)]]
+        return [[v] for v in ["1.5", "x", "五", "", *_out_of_range(ranges, int), *EXTREME[int]]]
     if hint is float:
-        return [[v] for v in ["nan", "inf", "-inf", "∞", "", *_out_of_range(ranges, float)]]
+        return [[v] for v in ["nan", "inf", "-inf", "∞", "", *_out_of_range(ranges, float), *EXTREME[float]]]
     if origin is Literal:
         return [["nope"], [""], ["é"]]
     if hint is str:
@@ -76,7 +86,7 @@ def bad_values(hint) -> list[list[str]]:
     if origin is list and args[0] is str:
         return [["é"]]
     if origin is list:
-        return [["-1"], ["x"], ["1.5"]]
+        return [["-1"], ["x"], ["1.5"], *([v] for v in EXTREME.get(args[0], []))]
     if origin is tuple:
         inner = bad_values(args[0])
         return [["0.5"], ["x", "y"]] + [[v[0], "0.5"] for v in inner if v and v[0]]
@@ -183,3 +193,153 @@ def test_bad_values_of_every_algorithm_flag_are_one_line_exit_2_too(capsys, tmp_
             for values in bad_values(hint):
                 found += failures(capsys, tmp_path, "train", ["--algo.name", algo, flag, *values], flag, values)
     assert not found, "\n".join(found)
+
+
+def _number_type(hint) -> type | None:
+    """int or float for a numeric flag (a list of numbers too), else None."""
+    hint, _ = _unwrap(hint)
+    if typing.get_origin(hint) is list:
+        hint = typing.get_args(hint)[0]
+    return hint if hint in (int, float) else None
+
+
+@pytest.mark.parametrize("command", ["demos", "train", "eval", "compare"])
+def test_extreme_values_are_refused_naming_the_flag_and_its_range(capsys, tmp_path, monkeypatch, inputs, command):
+    """Not an OverflowError's words ("Overflow when unpacking long long") nor a MemoryError: one
+    line that names the flag and the range it takes, exit 2, nothing written."""
+    cls, skipped, _ = COMMANDS[command]
+    monkeypatch.chdir(tmp_path)
+    found, tried = [], 0
+    for flag, hint in flags(cls):
+        number = _number_type(hint)
+        if flag in skipped or number is None:
+            continue
+        for value in EXTREME[number]:
+            argv = [*base_argv(command, flag, inputs), flag, value]
+            code = main([command, *argv])
+            err = capsys.readouterr().err.strip()
+            named = flag in err or flag[2:].replace("-", "_") in err
+            if code != 2 or "\n" in err or not named or not re.search(r"in [\[(]|at most", err) or any(tmp_path.iterdir()):
+                found.append(f"stepnft {command} {' '.join(argv)}: exit {code}, {err[-300:]!r}")
+            tried += 1
+    assert tried >= 8 and not found, "\n".join(found)
+
+
+def bad_config_files(root) -> dict[str, object]:
+    """Config files no command should read through: name -> path."""
+    from test_settings import billion_laughs  # the same documents as the loader's own tests
+
+    files = {"billion-laughs.yaml": billion_laughs(), "recursive.yaml": "env: &a {tasks: *a}\n",
+             "deep.yaml": "env: " + "[" * 50_000 + "]" * 50_000 + "\n",
+             "huge.yaml": "seed: 1\n" + "#" * SETTINGS_FILE_BYTES_MAX}
+    for name, text in files.items():
+        (root / name).write_text(text)
+    (root / "latin1.yaml").write_bytes("seed: 1 # é\n".encode("latin-1"))
+    return {name: root / name for name in [*files, "latin1.yaml"]}
+
+
+@pytest.mark.parametrize("command", ["train", "sft", "demo-bandit", "compare", "resume"])
+def test_config_files_that_expand_nest_or_weigh_too_much_are_one_line_exit_2(capsys, tmp_path, monkeypatch,
+                                                                               tmp_path_factory, command):
+    root = tmp_path_factory.mktemp("configs")
+    monkeypatch.chdir(tmp_path)
+    found = []
+    for name, path in bad_config_files(root).items():
+        if command == "resume":  # a run folder whose config.yaml is the bad file
+            run = root / f"run-{name}"
+            run.mkdir()
+            (run / "config.yaml").write_bytes(path.read_bytes())
+            argv = ["--resume", str(run)]
+        else:
+            argv = ["--config", str(path)]
+        found += failures(capsys, tmp_path, "train" if command == "resume" else command, argv, "--config", [name])
+    assert not found, "\n".join(found)
+
+
+@pytest.fixture
+def camera_commands(inputs, tmp_path_factory):
+    """Commands that render (camera observations or videos), each refused or begun at its start."""
+    root = tmp_path_factory.mktemp("rendering")
+    (root / "camera.yaml").write_text("env_step_budget: 100\nenv:\n  tasks: [reach-v3]\n  cameras: [corner]\n"
+                                      "policy:\n  cameras: [corner]\n")
+    return {
+        "eval --video-dir": ["eval", "--policy", str(inputs / "policy"), "--video-dir", "videos"],
+        "train --env.cameras": ["train", "--env.cameras", "corner", "--policy.cameras", "corner"],
+        "train --eval.videos": ["train", "--eval.videos", "1"],
+        "sft --env.cameras": ["sft", "--env.cameras", "corner", "--policy.cameras", "corner"],
+        "demos --env.cameras": ["demos", "--env.cameras", "corner"],
+        "compare (camera config)": ["compare", "--config", str(root / "camera.yaml")],
+    }
+
+
+GL_CASES = {
+    # name: (environment, whether OSMesa's library is found, what the line must say)
+    "bogus": ({"MUJOCO_GL": "bogus", "PYOPENGL_PLATFORM": None}, True, "MUJOCO_GL='bogus' is not a GL platform stepnft renders with: choose one of egl, osmesa, glfw"),
+    "osmesa without OSMesa": ({"MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": None}, False, "MUJOCO_GL=osmesa needs libOSMesa, which is not installed: apt-get install libosmesa6"),
+    "glfw without a display": ({"MUJOCO_GL": "glfw", "DISPLAY": None, "WAYLAND_DISPLAY": None, "PYOPENGL_PLATFORM": None},
+                               True,
+                               "MUJOCO_GL=glfw renders through a window and no display is set"),
+    "PyOpenGL contradicts": ({"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "osmesa"}, True,
+                             "PYOPENGL_PLATFORM='osmesa' contradicts MUJOCO_GL='egl'"),
+}
+
+
+@pytest.mark.parametrize("case", GL_CASES)
+def test_a_gl_platform_that_cannot_render_is_one_line_at_start_for_every_command_that_renders(
+        capsys, tmp_path, monkeypatch, camera_commands, case):
+    environment, osmesa_found, expected = GL_CASES[case]
+    for name, value in environment.items():
+        monkeypatch.delenv(name, raising=False) if value is None else monkeypatch.setenv(name, value)
+    find_library = ctypes.util.find_library
+    monkeypatch.setattr(ctypes.util, "find_library", lambda lib: None if lib == "OSMesa" and not osmesa_found
+                        else "libOSMesa.so.8" if lib == "OSMesa" else find_library(lib))
+    monkeypatch.chdir(tmp_path)
+    found = []
+    for name, argv in camera_commands.items():
+        try:
+            code = main(argv)
+        except PastTheChecks:
+            code = "none: it began its work"
+        err = capsys.readouterr().err.strip()
+        if code != 2 or "\n" in err or expected not in err or any(tmp_path.iterdir()):
+            found.append(f"{name}: exit {code}, {err[-300:]!r}, wrote {sorted(p.name for p in tmp_path.iterdir())}")
+    assert not found, "\n".join(found)
+
+
+@pytest.mark.parametrize("value", [None, ""], ids=["unset", "empty"])
+def test_an_unset_or_empty_gl_platform_renders_offscreen_with_egl(capsys, tmp_path, monkeypatch, inputs, value):
+    monkeypatch.delenv("MUJOCO_GL", raising=False) if value is None else monkeypatch.setenv("MUJOCO_GL", value)
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(PastTheChecks):  # past the check: it builds its env (where this test stops it)
+        main(["eval", "--policy", str(inputs / "policy"), "--video-dir", "videos"])
+    assert os.environ["MUJOCO_GL"] == "egl"
+
+
+def test_a_platform_that_passes_the_names_but_cannot_draw_is_one_line_without_teardown_noise(tmp_path, inputs):
+    """GLFW with a display that does not exist: the probe's frame fails; MuJoCo's half-built
+    renderer must not print its teardown tracebacks, nor GLFW its warnings."""
+    env = {**os.environ, "MUJOCO_GL": "glfw", "DISPLAY": ":987"}
+    env.pop("PYOPENGL_PLATFORM", None)
+    done = subprocess.run([sys.executable, "-m", "stepnft.cli", "eval", "--policy", str(inputs / "policy"),
+                           "--env.tasks", "reach-v3", "--video-dir", str(tmp_path / "videos")],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("stepnft eval: error: MUJOCO_GL=glfw cannot render here (")
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert not (tmp_path / "videos").exists()
+
+
+def test_a_camera_renderer_that_fails_later_says_so_without_teardown_noise(tmp_path):
+    """Past the start check (a renderer built elsewhere, a worker): RenderingError, and nothing
+    of MuJoCo's teardown on stderr."""
+    code = ("import metaworld, mujoco\n"
+            "from stepnft.envs.base import RenderingError\n"
+            "from stepnft.envs.metaworld.camera import CameraRenderer\n"
+            "model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><camera name=\"c\"/></worldbody></mujoco>')\n"
+            "try:\n    CameraRenderer(model, ['c'], 16, 16)\nexcept RenderingError as err:\n    print('refused:', err)\n")
+    env = {**os.environ, "MUJOCO_GL": "glfw", "DISPLAY": ":987"}
+    done = subprocess.run([sys.executable, "-W", "ignore", "-c", code], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and done.stdout.startswith("refused: offscreen rendering failed"), done
+    assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr, done.stderr

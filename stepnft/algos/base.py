@@ -59,23 +59,23 @@ class AlgoConfig(Settings):
 
     name: str = field(default="stepnft", metadata=PER_VARIANT)
     """Which algorithm: the keys of ``stepnft.algos.base.ALGORITHMS``."""
-    lr: Annotated[float, Range(gt=0)] = 1e-4
+    lr: Annotated[float, Range(gt=0, le=1)] = 1e-4
     """AdamW learning rate of the policy."""
     adam_betas: tuple[Annotated[float, Range(ge=0, lt=1)], Annotated[float, Range(ge=0, lt=1)]] = (0.9, 0.95)
     """AdamW (beta1, beta2)."""
-    adam_eps: Annotated[float, Range(gt=0)] = 1e-8
+    adam_eps: Annotated[float, Range(gt=0, le=1)] = 1e-8
     """AdamW epsilon."""
-    weight_decay: Annotated[float, Range(ge=0)] = 0.0
+    weight_decay: Annotated[float, Range(ge=0, le=1)] = 0.0
     """AdamW weight decay."""
-    grad_clip: Annotated[float, Range(gt=0)] = 1.0
+    grad_clip: Annotated[float, Range(gt=0, le=1e6)] = 1.0
     """Global gradient-norm clip."""
-    update_epochs: Annotated[int, Range(ge=1)] = 2
+    update_epochs: Annotated[int, Range(ge=1, le=1000)] = 2
     """Passes over each iteration's samples."""
-    minibatch_size: Annotated[int, Range(ge=1)] = 128
+    minibatch_size: Annotated[int, Range(ge=1, le=2**20)] = 128
     """Recorded denoising steps per gradient step, for every algorithm (with K recorded steps per
     policy call, PPO and GRPO take whole calls: ``minibatch_size // K`` of them, at least one; so
     does π-StepNFT with a policy that shares a call's prefix among its steps, a LeRobot VLA)."""
-    nonfinite_patience: Annotated[int, Range(ge=1)] = 20
+    nonfinite_patience: Annotated[int, Range(ge=1, le=10**6)] = 20
     """Optimizer steps in a row whose loss or gradient is not finite (each is skipped and counted
     as ``losses/skipped_nonfinite``) before the run stops with its last checkpoint intact."""
     noise_level: Annotated[float, Range(ge=0, le=10)] = 0.2
@@ -87,7 +87,7 @@ class AlgoConfig(Settings):
     then sum a call's log-likelihood over the K steps) or ``one`` random step per call, the others
     ODE (as πRL does; π-StepNFT then needs ``record_steps: one``: the ODE steps carry no
     exploration to learn from)."""
-    group_size: Annotated[int, Range(ge=1)] = field(default=1, metadata=PER_VARIANT)
+    group_size: Annotated[int, Range(ge=1, le=1024)] = field(default=1, metadata=PER_VARIANT)
     """Episodes started from the same task and initial state, in groups (1: every episode from
     its own state; each task's episodes come in whole groups). GRPO normalises success within
     them (>= 2, default 4); π-StepNFT balances labels within them with ``label_balance: group``."""

@@ -32,9 +32,9 @@ class LikelihoodConfig(AlgoConfig):
 
     defaults = {"noise_level": 0.5}
 
-    clip_coef: Annotated[float, Range(gt=0)] = 0.2
+    clip_coef: Annotated[float, Range(gt=0, le=10)] = 0.2
     """PPO clip range ε of the ratio ``exp(log π - log π_old)``."""
-    target_kl: Annotated[float | None, Range(gt=0)] = None
+    target_kl: Annotated[float | None, Range(gt=0, le=100)] = None
     """Skip the rest of an iteration's updates once a minibatch's approx-KL exceeds this (looked
     at before stepping); None: off."""
     reward: Literal["sparse", "shaped"] = "sparse"

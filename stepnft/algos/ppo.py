@@ -19,7 +19,7 @@ from stepnft.algos.likelihood import LikelihoodConfig, call_rewards, call_weight
 from stepnft.batch import Batch
 from stepnft.devices import to_device
 from stepnft.policies.base import Policy
-from stepnft.settings import Range
+from stepnft.settings import WIDTH_MAX, Range
 
 
 @dataclass
@@ -34,14 +34,14 @@ class PPOConfig(LikelihoodConfig):
     """GAE λ."""
     norm_adv: bool = True
     """Normalise the advantages over the iteration's calls (mean 0, std 1)."""
-    critic_lr: Annotated[float, Range(gt=0)] = 1e-3
+    critic_lr: Annotated[float, Range(gt=0, le=1)] = 1e-3
     """Adam learning rate of the value head (its own optimizer)."""
-    critic_hidden_dim: Annotated[int, Range(ge=1)] = 256
+    critic_hidden_dim: Annotated[int, Range(ge=1, le=WIDTH_MAX)] = 256
     """Width of the value head's two hidden layers."""
-    huber_delta: Annotated[float | None, Range(gt=0)] = None
+    huber_delta: Annotated[float | None, Range(gt=0, le=1e6)] = None
     """The critic's loss: Huber with this δ (RLinf: 10), None: ``0.5 (V - R)^2``. The two agree
     while ``|V - R| < δ``."""
-    value_clip: Annotated[float | None, Range(gt=0)] = None
+    value_clip: Annotated[float | None, Range(gt=0, le=1e6)] = None
     """Keep the critic's prediction within this of its value at rollout time, PPO-style: the loss
     is the larger of the clipped and unclipped errors (RLinf: 0.2); None: off."""
     critic_shares_encoder: bool = False
@@ -54,7 +54,7 @@ class PPOConfig(LikelihoodConfig):
     receive it (a camera policy's CNN and instruction projection; a SmolVLA's VLM with ``train:
     vlm``, its state projection with ``expert+state``); with a frozen prefix (``train: expert``)
     or a state-only policy the head only reads the features."""
-    value_coef: Annotated[float, Range(gt=0)] = 0.5
+    value_coef: Annotated[float, Range(gt=0, le=1000)] = 0.5
     """With ``critic_shares_encoder``: the weight of the critic's loss in the joint loss
     (CleanRL's ``vf_coef``); unused otherwise (the critic then has its own optimizer)."""
 

@@ -36,21 +36,21 @@ class SFTConfig(Settings):
 
     section: ClassVar[str] = "sft"
 
-    steps: Annotated[int, Range(ge=0)] = 3000
+    steps: Annotated[int, Range(ge=0, le=10**8)] = 3000
     """Gradient steps."""
-    batch_size: Annotated[int, Range(ge=1)] = 256
+    batch_size: Annotated[int, Range(ge=1, le=2**20)] = 256
     """Chunks per gradient step."""
-    lr: Annotated[float, Range(gt=0)] = 3e-4
+    lr: Annotated[float, Range(gt=0, le=1)] = 3e-4
     """AdamW learning rate."""
     adam_betas: tuple[Annotated[float, Range(ge=0, lt=1)], Annotated[float, Range(ge=0, lt=1)]] = (0.9, 0.999)
     """AdamW (beta1, beta2)."""
-    adam_eps: Annotated[float, Range(gt=0)] = 1e-8
+    adam_eps: Annotated[float, Range(gt=0, le=1)] = 1e-8
     """AdamW epsilon."""
-    weight_decay: Annotated[float, Range(ge=0)] = 1e-4
+    weight_decay: Annotated[float, Range(ge=0, le=1)] = 1e-4
     """AdamW weight decay."""
     time_law: Literal["uniform", "beta"] = "uniform"
     """Law of the flow time t during training: ``uniform`` or ``beta`` (π0's)."""
-    image_shift: Annotated[int, Range(ge=0)] = 4
+    image_shift: Annotated[int, Range(ge=0, le=64)] = 4
     """Random-shift augmentation of camera images (pixels, at the policy's image size): each
     image is padded by replication and cropped back at a random offset (0: off). SFT only: in
     RL updates v_old was computed on the unshifted views."""

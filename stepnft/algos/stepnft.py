@@ -21,7 +21,7 @@ from stepnft.distributed import data_parallel, shard_forward
 from stepnft.ema import ema_decay, ema_state_dict, ema_update, load_ema_state_dict, make_ema_copy
 from stepnft.losses import stepnft_loss
 from stepnft.policies.base import Policy
-from stepnft.settings import Range
+from stepnft.settings import ITERATIONS_MAX, Range
 
 
 @dataclass
@@ -34,13 +34,13 @@ class StepNFTConfig(AlgoConfig):
     """Transitions stored per policy call: ``one`` random denoising step (paper) or, beyond the
     paper, ``all`` K of them: K times the training signal for the same simulator steps.
     Default ``all``: measured better (docs/experiments.md)."""
-    beta: Annotated[float, Range(gt=0)] = 1.0
+    beta: Annotated[float, Range(gt=0, le=1000)] = 1.0
     """Trust factor β of the mirrored candidates ``v_old ± β Δc``."""
-    beta_dpo: Annotated[float, Range(gt=0)] = 1.0
+    beta_dpo: Annotated[float, Range(gt=0, le=1000)] = 1.0
     """Temperature of the ranking softplus."""
-    max_drift: Annotated[float | None, Range(gt=0)] = 0.5
+    max_drift: Annotated[float | None, Range(gt=0, le=1e6)] = 0.5
     """Cap on ``||v - v_old||`` per chunk position inside the loss (None: no clip)."""
-    kl_beta: Annotated[float, Range(ge=0)] = 1e-4
+    kl_beta: Annotated[float, Range(ge=0, le=1000)] = 1e-4
     """Weight of ``mean((v - v_old)^2)``."""
     target: Literal["next", "x0"] = "next"
     """``next``: step-wise target ``x_{t-dt}`` (paper); ``x0``: final-action ablation."""
@@ -56,7 +56,7 @@ class StepNFTConfig(AlgoConfig):
     """EMA decay at iteration 0."""
     ema_target: Annotated[float, Range(ge=0, le=1)] = 0.995
     """EMA decay at the end of the horizon."""
-    ema_horizon: Annotated[int | None, Range(ge=1)] = None
+    ema_horizon: Annotated[int | None, Range(ge=1, le=ITERATIONS_MAX)] = None
     """Iterations over which the decay rises (None: the run's number of iterations)."""
     eval_ema: bool = False
     """Evaluate (and save as ``policy/``) the EMA rollout policy instead of the trained one
@@ -85,7 +85,7 @@ class StepNFTConfig(AlgoConfig):
     """With ``labels: progress``: how far ahead a call's progress looks, in [0, 1): the reward
     level after the call is ``(1 - λ) Σ_l λ^l r_{c+l}`` over the episode's following calls (the
     last level held after its end), compared with the level of the call before."""
-    drift_limit: Annotated[float | None, Range(gt=0)] = None
+    drift_limit: Annotated[float | None, Range(gt=0, le=1e6)] = None
     """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""

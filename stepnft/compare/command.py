@@ -7,6 +7,10 @@ from dataclasses import dataclass, field
 
 from stepnft.algos.variants import VARIANTS, describe_variants
 from stepnft.names import split_names
+from stepnft.settings import EVAL_SEEDS_END, SEED_MAX
+
+JOBS_MAX = 256
+"""The most runs ``stepnft compare`` starts at once (one process each)."""
 
 
 @dataclass
@@ -61,16 +65,17 @@ class CompareCommand:
         for flag, path in (("--config", self.config), ("--out", self.out)):
             if not path.strip():
                 raise ValueError(f"{flag} must be a path (not empty), got {path!r}")
-        if not self.seeds or any(s < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"--seeds must be distinct integers >= 0, got {self.seeds}")
-        if self.jobs < 0:
-            raise ValueError(f"--jobs must be >= 0, got {self.jobs}")
+        if (not self.seeds or any(not 0 <= s <= SEED_MAX for s in self.seeds)
+                or len(set(self.seeds)) != len(self.seeds)):
+            raise ValueError(f"--seeds must be distinct integers in [0, {SEED_MAX}], got {self.seeds}")
+        if not 0 <= self.jobs <= JOBS_MAX:
+            raise ValueError(f"--jobs must be in [0, {JOBS_MAX}], got {self.jobs}")
         if self.suites:
             from stepnft.suites import check_suites
 
             check_suites(self.suites)
-        if self.suite_episodes < 1:
-            raise ValueError(f"--suite-episodes must be >= 1, got {self.suite_episodes}")
+        if not 1 <= self.suite_episodes <= EVAL_SEEDS_END:
+            raise ValueError(f"--suite-episodes must be in [1, {EVAL_SEEDS_END}], got {self.suite_episodes}")
         self.variant_overrides()  # checks the items' shape and names
 
     def variant_overrides(self) -> dict[str, dict]:

@@ -51,6 +51,7 @@ from stepnft.envs import get_simulator
 from stepnft.envs.episodes import DemoEpisode
 from stepnft.provenance import changed_since, code_commit, code_version
 from stepnft.runs import check_folder, write_atomic
+from stepnft.settings import DEMO_EPISODES_MAX
 
 __all__ = ["DemoEpisode", "check_task_episodes", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos",
            "load_demos", "load_or_generate_demos"]
@@ -58,7 +59,7 @@ __all__ = ["DemoEpisode", "check_task_episodes", "demo_cameras", "demo_seed", "d
 FORMAT = "stepnft-demos"
 VERSION = 1
 DEMO_SEED_OFFSET = 2**32
-MAX_EPISODES_PER_TASK = 2**20
+MAX_EPISODES_PER_TASK = DEMO_EPISODES_MAX
 
 
 def demo_seed(seed: int, episode: int) -> int:

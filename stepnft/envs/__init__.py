@@ -26,15 +26,18 @@ class SimulatorInfo:
     shaped_option: bool = False
     """With a ``sparse`` reward: whether its envs offer a shaped one of stepnft's own
     (``env.reward: shaped`` passes ``reward="shaped"`` to them)."""
+    opengl: bool = False
+    """Whether its cameras and videos render through MuJoCo's OpenGL (``MUJOCO_GL``, checked when
+    a command that renders starts: ``stepnft.envs.rendering``)."""
 
 
 DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
 """The embedded default: five MetaWorld v3 tasks, one multi-task policy."""
 
 SIMULATORS: dict[str, SimulatorInfo] = {
-    "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS)),
+    "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS), opengl=True),
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",), "sparse"),
-    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse", True),
+    "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse", True, opengl=True),
     "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
 }
 """Registered simulators by config name (``env.name``). A new simulator adds one line here."""
@@ -45,7 +48,12 @@ def get_simulator(name: str):
     extra is not installed is a ValueError saying so."""
     if name not in SIMULATORS:
         raise ValueError(f"unknown simulator {name!r}; choose one of: {', '.join(SIMULATORS)}")
-    module, cls = SIMULATORS[name].target.split(":")
+    info = SIMULATORS[name]
+    if info.opengl:  # MuJoCo reads MUJOCO_GL when imported, and some values fail its import
+        from stepnft.envs.rendering import check_gl_platform
+
+        check_gl_platform(renders=False)
+    module, cls = info.target.split(":")
     try:
         module = importlib.import_module(module)
     except ImportError as err:  # an optional extra (e.g. stepnft[libero]) that is not installed

@@ -33,6 +33,7 @@ from torch.utils.checkpoint import checkpoint
 from stepnft.devices import to_device
 from stepnft.runs import write_atomic
 from stepnft.sampling import ChunkSample, sample_chunk
+from stepnft.settings import read_settings_text
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -329,7 +330,7 @@ class Policy(nn.Module, ABC):
 
 def _config_data(directory: Path) -> dict:
     """The JSON object in ``directory/config.json``; ValueError if it holds anything else."""
-    data = json.loads((directory / CONFIG_NAME).read_text())
+    data = json.loads(read_settings_text(directory / CONFIG_NAME, "policy config"))
     if not isinstance(data, dict):
         raise ValueError(f"{CONFIG_NAME} must hold a JSON object, not a {type(data).__name__}")
     return data

@@ -14,6 +14,8 @@ from typing import Literal
 import numpy as np
 import torch
 
+from stepnft.settings import EVAL_SEEDS_END
+
 
 @dataclass
 class RolloutSpec:
@@ -32,7 +34,7 @@ class RolloutSpec:
     noise added to the plain Euler step, π-StepNFT's exploration ablation)."""
 
 
-TRAINING_SEEDS = (2**24, 2**31)
+TRAINING_SEEDS = (EVAL_SEEDS_END, 2**31)
 """Reset seeds of training episodes: far above evaluation seeds and below demonstration seeds
 (``stepnft.data.demos``)."""
 

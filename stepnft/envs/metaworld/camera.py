@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from stepnft.envs.base import RenderingError
+from stepnft.envs.rendering import quiet_teardown
 
 
 class CameraRenderer:
@@ -34,11 +35,15 @@ class CameraRenderer:
             raise ValueError(f"unknown camera {unknown[0]!r}; this scene's cameras: {', '.join(valid)}")
         self.cameras = list(cameras)
         self._ids = [valid.index(c) for c in cameras]
-        try:
-            self._renderer = mujoco.Renderer(model, height, width)
-        except Exception as err:  # noqa: BLE001 - GL failures come as several error types
-            raise RenderingError(f"offscreen rendering failed ({str(err).splitlines()[0]}): set MUJOCO_GL=egl "
-                                 "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)") from err
+        reason = None
+        with quiet_teardown():
+            try:
+                self._renderer = mujoco.Renderer(model, height, width)
+            except Exception as err:  # noqa: BLE001 - GL failures come as several error types
+                reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if reason is not None:  # raised here, once the half-built renderer was freed quietly
+            raise RenderingError(f"offscreen rendering failed ({reason}): set MUJOCO_GL=egl "
+                                 "and install libegl1 libegl-mesa0 (scripts/bootstrap.sh does)")
         flags = self._renderer.scene.flags
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
