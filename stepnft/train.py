@@ -194,7 +194,8 @@ class TrainingRun:
         self.check_samples(algo.acting_policy())  # before it plays NaN actions in the next iteration
         return {"iteration": progress.iteration, "env_steps": progress.env_steps, **_rollout_record(batch, self.tasks),
                 "charts/SPS": batch.env_steps / max(t1 - t0, 1e-9), "charts/samples": batch.num_steps,
-                "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **metrics, **self.collector.pop_metrics()}
+                "time/rollout_s": t1 - t0, "time/update_s": t2 - t1, **_per_task(metrics, self.tasks),
+                **self.collector.pop_metrics()}
 
     def validate(self) -> dict:
         """The evaluated policy on the validation states; kept as ``best_policy/`` if best so far."""
@@ -435,6 +436,18 @@ def _eval_record(result: dict | None, states: str) -> dict:
         return {"charts/success_rate": result["average"], **{f"eval/{t}": r["success"] for t, r in result["tasks"].items()}}
     return {"charts/validation_success_rate": result["average"],
             **{f"validation/{t}": r["success"] for t, r in result["tasks"].items()}}
+
+
+def _per_task(metrics: dict, tasks: list[str]) -> dict:
+    """An algorithm's metrics with each list-valued one (one entry per task, e.g. π-StepNFT's
+    ``algo.task_diagnostics``) logged as ``NAME/<task>``."""
+    out = {}
+    for name, value in metrics.items():
+        if isinstance(value, list):
+            out |= {f"{name}/{task}": value[k] if k < len(value) else None for k, task in enumerate(tasks)}
+        else:
+            out[name] = value
+    return out
 
 
 def _rollout_record(batch, tasks: list[str]) -> dict:

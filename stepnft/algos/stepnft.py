@@ -89,6 +89,13 @@ class StepNFTConfig(AlgoConfig):
     """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
     past ``max_drift``, where the clipped loss no longer bounds the step size. None: off."""
+    task_diagnostics: bool = False
+    """Also log, every iteration and per task, what the update saw: ``labels/pos_frac/<task>``
+    (share of its recorded steps labelled positive), ``labels/weight_share/<task>`` (its positives'
+    share of its sample weight), ``losses/E_pos/<task>``, ``losses/E_neg/<task>`` and
+    ``losses/delta_v_norm/<task>`` (the loss terms after the update, on up to 1024 of its steps,
+    evenly spaced: no random draw, so the run is the same with it on). For diagnosing tasks that
+    fall; one forward pass more per task and iteration."""
 
     def check(self) -> None:
         super().check()
@@ -218,7 +225,41 @@ def stepnft_update(
     means = epochs.means()
     means.setdefault("grad_norm", 0.0)  # logged every iteration, 0 when no step was taken
     out = {"charts/pos_sample_frac": means.pop("pos_frac", float("nan"))}
-    return out | {f"losses/{k}": v for k, v in means.items()} | epochs.counts("drift_stopped")
+    out |= {f"losses/{k}": v for k, v in means.items()} | epochs.counts("drift_stopped")
+    return out | (task_diagnostics(learner, policy, batch, y, weights, cfg) if cfg.task_diagnostics else {})
+
+
+@torch.no_grad()
+def task_diagnostics(learner, policy: Policy, batch: Batch, y: Tensor, weights: Tensor | None, cfg: StepNFTConfig,
+                     max_steps: int = 1024) -> dict[str, list[float | None]]:
+    """Per-task labels and loss terms (``StepNFTConfig.task_diagnostics``): each value is a list
+    with one entry per task of the run (None for a task with no steps this iteration), which the
+    training loop logs as ``NAME/<task>``."""
+    num_tasks = int(batch.episode_task.max()) + 1 if batch.num_steps else 0
+    names = ("labels/pos_frac", "labels/weight_share", "losses/E_pos", "losses/E_neg", "losses/delta_v_norm")
+    out: dict[str, list[float | None]] = {name: [None] * num_tasks for name in names}
+    w_all = torch.ones(len(y)) if weights is None else weights
+    for k in range(num_tasks):
+        rows = (batch.step_task == k).nonzero().flatten()
+        if len(rows) == 0:
+            continue
+        pos = y[rows] > 0
+        out["labels/pos_frac"][k] = float(pos.float().mean())
+        w = w_all[rows]
+        out["labels/weight_share"][k] = float(w[pos].sum() / w.sum()) if w.sum() > 0 else None
+        rows = rows[torch.linspace(0, len(rows) - 1, min(max_steps, len(rows))).long()]
+        v = step_velocity(learner, policy, batch, rows)
+        calls = batch.call[rows]
+        v_old, x_t, x_next, t, dt, label, mask, actions = to_device(
+            (batch.v_old[rows], batch.x_t[rows], batch.x_next[rows], batch.t[rows], batch.dt[rows], y[rows],
+             batch.mask[calls], batch.actions[calls]), v.device)
+        _, metrics = stepnft_loss(v, v_old, x_t, x_next, t, dt, cfg.noise_level, label, beta=cfg.beta,
+                                  beta_dpo=cfg.beta_dpo, max_drift=cfg.max_drift, kl_beta=cfg.kl_beta, mask=mask,
+                                  target=cfg.target, form=cfg.form, actions=actions,
+                                  mean_correction=cfg.mean_correction)
+        for name in ("E_pos", "E_neg", "delta_v_norm"):
+            out[f"losses/{name}"][k] = metrics[name]
+    return out
 
 
 # --- the algorithm ----------------------------------------------------------------------------
