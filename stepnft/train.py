@@ -439,11 +439,12 @@ def _eval_record(result: dict | None, states: str) -> dict:
 
 
 def _per_task(metrics: dict, tasks: list[str]) -> dict:
-    """An algorithm's metrics with each list-valued one (one entry per task, e.g. π-StepNFT's
+    """An algorithm's metrics with each ``per_task/NAME`` (a list, one entry per task: π-StepNFT's
     ``algo.task_diagnostics``) logged as ``NAME/<task>``."""
     out = {}
     for name, value in metrics.items():
-        if isinstance(value, list):
+        if name.startswith("per_task/"):
+            name = name.removeprefix("per_task/")
             out |= {f"{name}/{task}": value[k] if k < len(value) else None for k, task in enumerate(tasks)}
         else:
             out[name] = value

@@ -353,3 +353,12 @@ def test_a_run_on_an_env_step_budget_counts_its_progress_in_env_steps():
     with progress_bar(on_iterations, Progress(iteration=3, env_steps=120_000), disable=True) as bar:
         assert (bar.total, bar.n) == (40, 3)
     assert bar_position(on_iterations, Progress(iteration=4, env_steps=130_000)) == 4
+
+
+def test_per_task_metrics_are_logged_under_each_task_name():
+    from stepnft.train import _per_task
+
+    metrics = {"losses/E_pos": 0.7, "per_task/labels/pos_frac": [0.5, None], "per_task/losses/E_pos": [0.1]}
+    assert _per_task(metrics, ["reach-v3", "push-v3"]) == {
+        "losses/E_pos": 0.7, "labels/pos_frac/reach-v3": 0.5, "labels/pos_frac/push-v3": None,
+        "losses/E_pos/reach-v3": 0.1, "losses/E_pos/push-v3": None}

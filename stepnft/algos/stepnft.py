@@ -232,9 +232,9 @@ def stepnft_update(
 @torch.no_grad()
 def task_diagnostics(learner, policy: Policy, batch: Batch, y: Tensor, weights: Tensor | None, cfg: StepNFTConfig,
                      max_steps: int = 1024) -> dict[str, list[float | None]]:
-    """Per-task labels and loss terms (``StepNFTConfig.task_diagnostics``): each value is a list
-    with one entry per task of the run (None for a task with no steps this iteration), which the
-    training loop logs as ``NAME/<task>``."""
+    """Per-task labels and loss terms (``StepNFTConfig.task_diagnostics``), under ``per_task/NAME``:
+    each a list with one entry per task of the run (None for a task with no steps this
+    iteration), which the training loop logs as ``NAME/<task>``."""
     num_tasks = int(batch.episode_task.max()) + 1 if batch.num_steps else 0
     names = ("labels/pos_frac", "labels/weight_share", "losses/E_pos", "losses/E_neg", "losses/delta_v_norm")
     out: dict[str, list[float | None]] = {name: [None] * num_tasks for name in names}
@@ -259,7 +259,7 @@ def task_diagnostics(learner, policy: Policy, batch: Batch, y: Tensor, weights: 
                                   mean_correction=cfg.mean_correction)
         for name in ("E_pos", "E_neg", "delta_v_norm"):
             out[f"losses/{name}"][k] = metrics[name]
-    return out
+    return {f"per_task/{name}": values for name, values in out.items()}
 
 
 # --- the algorithm ----------------------------------------------------------------------------

@@ -238,3 +238,25 @@ def test_progress_labels_credit_the_calls_that_raised_the_reward():
     torch.testing.assert_close(step_labels(flat, StepNFTConfig(labels="progress")), torch.tensor([-1.0, 1, -1, 1, -1]))
     with pytest.raises(ValueError, match="algo.progress_mix"):
         StepNFTConfig(labels="progress", progress_mix=1.5)
+
+
+def test_task_diagnostics_report_each_task_and_leave_the_update_unchanged():
+    results = {}
+    for diagnose in (False, True):
+        policy, batch = make_batch(seed=3)
+        cfg = StepNFTConfig(noise_level=0.3, lr=1e-3, update_epochs=2, minibatch_size=64, task_diagnostics=diagnose)
+        opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
+        metrics = stepnft_update(policy, opt, batch, cfg, torch.Generator().manual_seed(0))
+        results[diagnose] = (metrics, [p.detach().clone() for p in policy.parameters()])
+    (plain, before), (diagnosed, after) = results[False], results[True]
+    for a, b in zip(before, after):  # no random draw, no gradient: the same update
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert {k: v for k, v in diagnosed.items() if not k.startswith("per_task/")} == plain
+    # One entry per task; the label share is what the batch holds (episode success, one call each).
+    y = batch.episode_success.float() * 2 - 1
+    for k in range(2):
+        rows = batch.step_task == k
+        task = {name.removeprefix("per_task/"): values[k] for name, values in diagnosed.items() if "per_task/" in name}
+        assert task["labels/pos_frac"] == pytest.approx(float((y[batch.step_episode[rows]] > 0).float().mean()))
+        assert 0 < task["labels/weight_share"] < 1
+        assert task["losses/E_pos"] > 0 and task["losses/E_neg"] > 0 and task["losses/delta_v_norm"] > 0
