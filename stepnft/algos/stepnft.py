@@ -85,6 +85,12 @@ class StepNFTConfig(AlgoConfig):
     """With ``labels: progress``: how far ahead a call's progress looks, in [0, 1): the reward
     level after the call is ``(1 - λ) Σ_l λ^l r_{c+l}`` over the episode's following calls (the
     last level held after its end), compared with the level of the call before."""
+    failed_task_labels: Literal["mixed", "progress"] = "mixed"
+    """With ``labels: progress``, a task none of whose episodes succeeded in the iteration:
+    ``mixed`` (the label above, which is <= 0 for every call of a failed episode: the update only
+    pushes away from what the task's policy did) or ``progress``: its calls labelled by progress
+    alone, ``tanh(progress / std)``, so the calls that moved it forward are pulled toward (the
+    outcome, the same -1 for every call, ranks nothing). Tasks with a success keep ``mixed``."""
     drift_limit: Annotated[float | None, Range(gt=0, le=1e6)] = None
     """Beyond the paper: skip the rest of an iteration's updates once a minibatch's mean
     ``||v - v_old||`` exceeds this (like PPO's target-KL early stop): a guard against drifting
@@ -148,7 +154,8 @@ def episode_groups(batch: Batch) -> Tensor:
 def step_labels(batch: Batch, cfg: StepNFTConfig) -> Tensor:
     """``[N]`` labels of the recorded steps: the episode's outcome ±1 (``labels: episode``), or
     mixed with the call's progress normalised within its task (``labels: progress``; a task
-    whose reward did not move in this batch keeps the outcome alone)."""
+    whose reward did not move in this batch keeps the outcome alone; with ``failed_task_labels:
+    progress`` a task without a success in the batch takes the progress alone)."""
     outcome = batch.episode_success[batch.episode].float() * 2 - 1  # [C]
     if cfg.labels == "episode":
         return outcome[batch.call]
@@ -160,7 +167,13 @@ def step_labels(batch: Batch, cfg: StepNFTConfig) -> Tensor:
         std = progress[in_g].std(unbiased=False)
         if std > 1e-6:
             scaled[in_g] = torch.tanh(progress[in_g] / std)
-    return ((1 - cfg.progress_mix) * outcome + cfg.progress_mix * scaled)[batch.call]
+    label = (1 - cfg.progress_mix) * outcome + cfg.progress_mix * scaled
+    if cfg.failed_task_labels == "progress":
+        for g in task.unique():
+            in_g = task == g
+            if not bool((outcome[in_g] > 0).any()) and not torch.equal(scaled[in_g], outcome[in_g]):
+                label[in_g] = scaled[in_g]  # no success to rank against: progress alone
+    return label[batch.call]
 
 
 def sample_weights(batch: Batch, y: Tensor, cfg: StepNFTConfig) -> Tensor | None:

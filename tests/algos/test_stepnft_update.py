@@ -260,3 +260,22 @@ def test_task_diagnostics_report_each_task_and_leave_the_update_unchanged():
         assert task["labels/pos_frac"] == pytest.approx(float((y[batch.step_episode[rows]] > 0).float().mean()))
         assert 0 < task["labels/weight_share"] < 1
         assert task["losses/E_pos"] > 0 and task["losses/E_neg"] > 0 and task["losses/delta_v_norm"] > 0
+
+
+def test_a_task_without_a_success_can_be_labelled_by_its_progress_alone():
+    from tests.algos.test_policy_gradient import make_batch as make_episodes
+    from stepnft.algos.stepnft import call_progress, step_labels
+
+    _, batch = make_episodes([0, 1, 0, 1, 0], success=[False, False])  # one task, no success
+    batch = dataclasses.replace(batch, call=torch.arange(5), reward=torch.tensor([2.0, 0.0, 6.0, 4.0, 1.0]))
+    p = call_progress(batch, 0.8)
+    mixed = step_labels(batch, StepNFTConfig(labels="progress"))
+    assert bool((mixed <= 0).all())  # the mixed label: every call pushed away
+    alone = step_labels(batch, StepNFTConfig(labels="progress", failed_task_labels="progress"))
+    torch.testing.assert_close(alone, torch.tanh(p / p.std(unbiased=False)))
+    assert bool((alone > 0).any()) and bool((alone < 0).any())  # the calls that made progress are pulled toward
+    # A task with a success keeps the mixed label.
+    _, won = make_episodes([0, 1, 0, 1, 0], success=[False, True])
+    won = dataclasses.replace(won, call=torch.arange(5), reward=batch.reward)
+    torch.testing.assert_close(step_labels(won, StepNFTConfig(labels="progress", failed_task_labels="progress")),
+                               step_labels(won, StepNFTConfig(labels="progress")))
