@@ -92,10 +92,25 @@ def _flags_as_values():
             spec = ConstructorRegistry.get_struct_spec(info)
         finally:
             inside.pop()
-        return dataclasses.replace(spec, instantiate=dict) if isinstance(spec, StructConstructorSpec) else spec
+        if not isinstance(spec, StructConstructorSpec):
+            return spec
+        fields = tuple(dataclasses.replace(f, helptext=_help_with_range(f.helptext, f.type)) for f in spec.fields)
+        return dataclasses.replace(spec, instantiate=dict, fields=fields)
 
     with registry:
         yield
+
+
+def _help_with_range(helptext, hint) -> str | None:
+    """A flag's help with the range its setting declares (``--seed``: "an integer in [0,
+    2147483647]"), so ``--help`` states every bound the check enforces."""
+    from stepnft.settings import Range, describe
+
+    text = helptext() if callable(helptext) else helptext
+    rules = getattr(hint, "__metadata__", ())
+    if not any(isinstance(rule, Range) for rule in rules):
+        return text
+    return f"{text or ''} Takes {describe(hint)}.".strip()
 
 
 def _renamed_flag(argv: list[str], prog: str) -> str | None:

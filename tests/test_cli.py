@@ -84,6 +84,15 @@ def test_help_lists_every_command_and_config_section(capsys):
         assert run_cli(capsys, command, "--help")[0] == 0
 
 
+def test_help_states_the_range_of_every_bounded_flag(capsys):
+    code, out, _ = run_cli(capsys, "train", "--help")
+    text = " ".join(line.strip("│ ") for line in out.splitlines())  # tyro's boxes wrap the help
+    assert code == 0 and "Takes an integer in [0, 2147483647]." in text  # --seed
+    assert "Takes a finite number in (0, 1]." in text  # --algo.lr
+    code, out, _ = run_cli(capsys, "eval", "--help")
+    assert "Takes an integer in [0, 16777216]." in " ".join(line.strip("│ ") for line in out.splitlines())
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["demos", "--tasks", "reach-v3"], "--tasks is now --env.tasks"),
     (["demos", "--env.tasks", "reach-v3", "--out=d"], "--out is now --demos.path"),
