@@ -58,6 +58,31 @@ def test_a_smolvla_folders_cameras_come_from_its_image_features(tmp_path):
     assert LeRobotPolicyConfig.read(tmp_path).cameras == ["topview"]  # set by the user: kept
 
 
+@pytest.mark.parametrize("key, value", [("horizon", 10**12), ("num_inference_steps", 2**40), ("lora_rank", 10**9),
+                                        ("n_exec", 1.5), ("state_dim", True), ("action_dim", "4")])
+def test_a_hand_edited_lerobot_config_with_a_huge_or_non_integer_count_is_one_line(tmp_path, key, value):
+    """Read without LeRobot, before anything is sized from it: the count, named, with its bound."""
+    from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
+    from stepnft.settings import WIDTH_MAX
+
+    (tmp_path / "config.json").write_text(json.dumps({"type": "smolvla", "lerobot": "lerobot", key: value}))
+    with pytest.raises(ValueError, match=f"policy {key}=.* must be an integer <= {WIDTH_MAX}"):
+        LeRobotPolicyConfig.read(tmp_path)
+
+
+def test_stepnft_eval_of_a_lerobot_folder_with_a_huge_chunk_is_one_line_exit_2(tmp_path):
+    (tmp_path / "pol").mkdir()
+    (tmp_path / "pol" / "config.json").write_text(json.dumps({"type": "smolvla", "lerobot": "lerobot",
+                                                              "horizon": 10**15}))
+    done = subprocess.run([sys.executable, "-m", "stepnft.cli", "eval", "--policy", str(tmp_path / "pol"),
+                           "--env.name", "bandit", "--env.max-episode-steps", "8", "--env.tasks", "bandit"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    # Without LeRobot the folder's type is refused first, in one line too.
+    assert ("horizon" if HAVE_LEROBOT else "LeRobot is not installed") in done.stderr, done.stderr
+
+
 # --- a bandit with a synthetic camera image (the context painted into two channels) ------------
 class ImageBanditEnv(gym.Wrapper):
     """The bandit with an ``image`` uint8 [1, 3, 16, 16] observation: channel k holds context k."""

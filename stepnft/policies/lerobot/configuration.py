@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Literal
 
 from stepnft.policies.flow.configuration_flow import FlowPolicyConfig
+from stepnft.settings import WIDTH_MAX
 
 TRAIN_SCOPES = ("expert", "expert+state", "vlm")
 
@@ -67,6 +68,11 @@ class LeRobotPolicyConfig:
     def __post_init__(self) -> None:
         if self.train not in TRAIN_SCOPES:
             raise ValueError(f"policy train={self.train!r} is invalid: choose one of {', '.join(TRAIN_SCOPES)}")
+        counts = ("lora_rank", "lora_alpha", "n_exec", "num_inference_steps", "state_dim", "action_dim", "horizon")
+        for name in counts:  # a hand-edited config.json: bounded before anything is sized from it
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value > WIDTH_MAX:
+                raise ValueError(f"policy {name}={value!r} is invalid: it must be an integer <= {WIDTH_MAX}")
         if self.lora_rank < 0 or self.lora_alpha <= 0:
             raise ValueError("policy lora_rank must be >= 0 and lora_alpha > 0")
         if self.lora_rank and self.train != "vlm":
