@@ -43,6 +43,19 @@ def test_every_task_has_a_distinct_instruction():
     assert len(set(texts)) == len(texts)
 
 
+def test_mt10_mt50_and_the_difficulty_splits_match_metaworld():
+    from metaworld.env_dict import MT10_V3
+
+    from stepnft.envs.metaworld.benchmarks import DIFFICULTY, MT10, MT50, difficulty_of
+
+    assert list(MT10) == list(MT10_V3) and list(MT50) == TASK_NAMES
+    assert {k: len(v) for k, v in DIFFICULTY.items()} == {"easy": 28, "medium": 11, "hard": 6, "very_hard": 5}
+    assert sorted(t for tasks in DIFFICULTY.values() for t in tasks) == TASK_NAMES  # each task once
+    assert difficulty_of("shelf-place-v3") == "very_hard" and difficulty_of("reach-v3") == "easy"
+    with pytest.raises(KeyError):
+        difficulty_of("reach-v2")
+
+
 def test_unknown_task_names_the_valid_ones():
     assert validate_tasks("reach-v3, push-v3") == ["reach-v3", "push-v3"]
     with pytest.raises(ValueError) as error:
