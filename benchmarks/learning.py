@@ -109,6 +109,26 @@ def table(runs: list[dict], tasks: list[str]) -> str:
     return "\n".join(lines)
 
 
+def split_table(runs: list[dict], tasks: list[str]) -> str:
+    """Markdown: the average SFT start and final success per MetaWorld difficulty split (easy,
+    medium, hard, very hard: the splits MT50 results are reported by), mean over the split's tasks
+    and then over seeds; empty unless every task is a MetaWorld v3 task."""
+    from stepnft.envs.metaworld.benchmarks import DIFFICULTY, MT50
+
+    if not set(tasks) <= set(MT50):
+        return ""
+    lines = ["| split | tasks | SFT | final | final − SFT |", "|---|---|---|---|---|"]
+    for split, members in DIFFICULTY.items():
+        mine = [t for t in tasks if t in members]
+        if not mine:
+            continue
+        mean = lambda r, w: statistics.mean(r["tasks"][t][w]["success"] for t in mine)  # noqa: E731
+        before, after = [mean(r, "before") for r in runs], [mean(r, "after") for r in runs]
+        lines.append(f"| {split.replace('_', ' ')} | {len(mine)} | {fmt(before)} | {fmt(after)} | "
+                     f"{fmt([a - b for a, b in zip(after, before)])} |")
+    return "\n".join(lines)
+
+
 RUN_ARGS = ("config", "tasks", "demos", "task_demos", "env_steps", "eval_episodes", "set")
 """The arguments that define a seed's run (the others only say which seeds, where, and pairings)."""
 
@@ -238,7 +258,9 @@ def main(argv=None) -> dict:
     steps = [float(r["env_steps"]) for r in runs]
     own_counts = {t: n for t, n in demos.task_episodes.items() if t in tasks}  # the config's may name other tasks
     wall = [r.get("wall_clock_s", r.get("wall_clock_s_this_session", float("nan"))) for r in runs]
-    text = (table(runs, tasks) + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
+    splits = split_table(runs, tasks)
+    text = (table(runs, tasks) + (f"\n\nPer difficulty split:\n\n{splits}" if splits else "")
+            + f"\n\nRL env steps per run: {fmt(steps)}; wall-clock per run (demos, SFT, RL, "
             f"3 test evaluations of {args.eval_episodes} episodes/task): {statistics.mean(wall) / 60:.1f} min; "
             f"seeds {args.seeds}; demos/task {demos.episodes} {own_counts or ''}; config {args.config}"
             + (f" with {' '.join(args.set)}" if args.set else "") + f".\n\nCommand: `{command()}` (commit {commit()}).")

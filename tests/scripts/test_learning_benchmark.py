@@ -127,3 +127,13 @@ def test_a_recorded_seed_computed_with_other_kernels_is_rerun(learning, tmp_path
     with pytest.raises(RuntimeError, match="would train"):
         learning.main([*args, "--seeds", "1", "2", "0", "--out", str(tmp_path / "mine")])
     assert seen == [0]
+
+
+def test_metaworld_tasks_are_also_tabled_per_difficulty_split(learning):
+    runs = [run(0, 0.4, 0.7), run(1, 0.2, 0.3)]  # reach (easy) and push (hard)
+    for r in runs:
+        r["tasks"]["push-v3"]["after"]["success"] = 0.1
+    text = learning.split_table(runs, TASKS)
+    assert "| easy | 1 | 0.30 ± 0.14 | 0.50 ± 0.28 | 0.20 ± 0.14 |" in text
+    assert "| hard | 1 | 0.30 ± 0.14 | 0.10 ± 0.00 |" in text and "medium" not in text
+    assert learning.split_table(runs, ["bandit"]) == ""
