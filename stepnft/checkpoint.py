@@ -63,9 +63,10 @@ def unflatten_state(skeleton: Any, tensors: dict[str, torch.Tensor]) -> Any:
     return skeleton["value"]
 
 
-def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) -> Path:
+def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict, config: dict | None = None) -> Path:
     """Write checkpoint ``iter_{iteration}`` (the policy and ``state``) atomically and point
-    ``LATEST`` at it."""
+    ``LATEST`` at it. ``config``: the run's settings it was written under (plain values, kept in
+    ``state.json``), which ``--resume`` compares with the folder's config.yaml."""
     root = Path(run_dir) / "checkpoints"
     root.mkdir(parents=True, exist_ok=True)
     for stale in root.glob(".tmp-*"):  # left by a writer that was killed
@@ -80,7 +81,8 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) 
         try:
             policy.save_pretrained(tmp / "policy")
             save_file(tensors, str(tmp / "state.safetensors"))
-            (tmp / "state.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "state": skeleton}))
+            meta = {"format_version": FORMAT_VERSION, "state": skeleton, **({"config": config} if config else {})}
+            (tmp / "state.json").write_text(json.dumps(meta))
             final = root / name
             if final.exists():  # never the one LATEST names: iterations only grow after a resume
                 shutil.rmtree(final)
@@ -100,7 +102,8 @@ def save_checkpoint(run_dir: Path, iteration: int, policy: Policy, state: dict) 
 
 
 def load_checkpoint(run_dir: Path) -> dict:
-    """Load the newest checkpoint of ``run_dir``: ``{"policy", "state", "path"}``.
+    """Load the newest checkpoint of ``run_dir``: ``{"policy", "state", "path", "config"}``
+    (``config``: the settings it was written under, None in checkpoints older than that record).
 
     Raises ValueError with one actionable line if there is none or it is corrupt.
     """
@@ -117,7 +120,8 @@ def load_checkpoint(run_dir: Path) -> dict:
         fix = (f"delete it and point LATEST at the one before (`rm -r {ckpt} && echo {older[-1]} > {root / 'LATEST'}`)"
                if older else f"no older checkpoint is left: start a new run in another --run-dir")
         raise ValueError(f"checkpoint {ckpt} is corrupt or incomplete ({str(err).splitlines()[0]}); {fix}") from err
-    return {"policy": policy, "state": state, "path": ckpt}
+    config = meta.get("config")
+    return {"policy": policy, "state": state, "path": ckpt, "config": config if isinstance(config, dict) else None}
 
 
 def _checkpoints(root: Path) -> list[Path]:

@@ -17,7 +17,9 @@ import io
 import dataclasses
 import json
 import re
+import signal
 import sys
+import threading
 import typing
 from pathlib import Path
 
@@ -44,6 +46,21 @@ RENAMED_FLAGS = {
                     "--beta": "--algo.beta"},
 }
 """Flags of earlier releases, no longer accepted: an error names the flag that replaced each."""
+
+
+INTERRUPTED = {
+    "train": "interrupted; `stepnft train --resume RUN_DIR` continues from the last checkpoint (a run stopped "
+             "before its first checkpoint left nothing)",
+    "sft": "interrupted; the run folder was removed (an SFT run that did not finish leaves nothing): rerun the command",
+    "eval": "interrupted; --out was not written (it holds its earlier results, if any)",
+    "demos": "interrupted before the recording began: nothing was written",
+    "demo-bandit": "interrupted",
+}
+"""What an interrupted command left, said when it stops (``demos`` and ``compare`` say it themselves)."""
+
+
+_WRITERS = contextlib.ExitStack()
+"""Locks a command holds until it returns (``stepnft.runs.writer_lock``)."""
 
 
 class UsageError(Exception):
@@ -340,6 +357,10 @@ def cmd_eval(argv: list[str]) -> int:
     video_dir = check_folder(args.video_dir, "videos", "--video-dir") if args.video_dir else None
     policy = load_policy(args.policy).to(device)
     _check_samples(policy, args.env, args.eval.seed, args.policy)
+    if out:  # one writer of --out (the lock is a hidden file beside it)
+        from stepnft.runs import writer_lock
+
+        _WRITERS.enter_context(writer_lock(out.parent, f".{out.name}.lock"))
     if args.eval.episodes > 0:
         if len(suites) == 1:
             result = evaluate_suite(policy, args.env, suites[0], args.eval.episodes, args.eval.seed)
@@ -451,8 +472,6 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from stepnft.algos.base import RunDiverged
-
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
@@ -461,20 +480,31 @@ def main(argv: list[str] | None = None) -> int:
     if command not in HANDLERS:
         print(f"stepnft: error: unknown command {command!r}; choose one of: {', '.join(HANDLERS)}", file=sys.stderr)
         return 2
+    # SIGTERM unwinds like Ctrl-C, so every command's cleanup runs (a run folder that cannot
+    # resume is removed, a recording keeps its finished tasks).
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
     try:
-        return HANDLERS[command](rest)
+        with _WRITERS:
+            return HANDLERS[command](rest)
     except SystemExit as stop:  # tyro ends --help with code 0
         return stop.code if isinstance(stop.code, int) else 0 if stop.code is None else 2
     except (UsageError, ValueError, OSError) as err:
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"stepnft {command}: error: {message}", file=sys.stderr)
         return 2
-    except RunDiverged as err:
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM (above): each command says what is left
+        print(f"stepnft {command}: {str(err) or INTERRUPTED.get(command, 'interrupted')}", file=sys.stderr)
+        return 130
+    except Exception as err:
+        algos = sys.modules.get("stepnft.algos.base")  # imported by the commands that train (with torch)
+        if algos is None or not isinstance(err, algos.RunDiverged):
+            raise
         print(f"stepnft {command}: error: {err}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"stepnft {command}: interrupted; `stepnft train --resume RUN_DIR` continues a training run", file=sys.stderr)
-        return 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

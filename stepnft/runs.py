@@ -7,11 +7,15 @@ record per line), TensorBoard logs (``tb/``), ``checkpoints/``, ``sft_policy/``,
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import math
 import os
+import shutil
 import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -42,6 +46,56 @@ def prepare_run_dir(path: str | Path, must_exist: bool = False, flag: str = "--r
     except OSError as err:
         raise ValueError(f"cannot write to {run_dir} ({err.strerror}): choose another {flag}") from err
     return run_dir
+
+
+LOCK_NAME = ".stepnft.lock"
+"""The lock file of a folder while a command writes it (hidden: a folder holding only it counts as empty)."""
+
+
+class FolderBusy(ValueError):
+    """Another live process writes the folder (it holds the folder's lock)."""
+
+
+@contextlib.contextmanager
+def writer_lock(folder: str | Path, name: str = LOCK_NAME) -> Iterator[Path]:
+    """Hold the OS file lock (``flock``) of ``folder/name`` for the block: one writer per folder.
+    The lock belongs to the open file, so it ends with the process however it ends (kill -9
+    included): a stale lock cannot outlive its holder. A folder another process holds is a
+    :class:`FolderBusy` (one line naming its PID). The folder is created if missing, and removed
+    again if it is left empty; the lock file is removed when the block ends (a lock taken on a
+    file that was removed meanwhile is taken again on the new one). Only the process that writes
+    takes it: Ray workers and torchrun ranks write nothing of the run."""
+    folder = Path(folder)
+    created = [d for d in (folder, *folder.parents) if not d.exists()]
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise FolderBusy(f"{folder} is being written by another stepnft process (PID {holder}): wait for it to "
+                             "end, or stop it, before writing there") from None
+        try:
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)  # its holder removed the file as we took it: take the new one
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                path.unlink()
+        os.close(fd)  # releases the lock
+        for d in created:  # nothing was written (bad input, a start that cleaned up): leave nothing behind
+            with contextlib.suppress(OSError):
+                d.rmdir()
 
 
 RUN_MARKER = "run.json"
@@ -122,6 +176,30 @@ def check_folder(path: str | Path, kind: str, flag: str) -> Path:
 def mark_run(run_dir: Path, kind: str) -> None:
     """Mark ``run_dir`` as holding a run of ``kind`` (``train`` or ``sft``)."""
     write_atomic(run_dir / RUN_MARKER, json.dumps({"kind": kind}))
+
+
+RUN_FILES = frozenset({RUN_MARKER, "config.yaml", "metrics.jsonl", "tb", "checkpoints", "sft_policy", "policy",
+                       "best_policy", "lang_cache", "videos", "learning_curve.png", "summary.json"})
+"""What a ``train`` or ``sft`` run writes at the top of its folder."""
+
+
+def clear_interrupted_start(run_dir: Path, kind: str) -> bool:
+    """Empty ``run_dir`` if it holds a start of a ``kind`` run (``train``, ``sft``) that ended
+    before anything could be continued (killed, e.g. kill -9 or a power cut, before a training
+    run's first checkpoint or before an SFT run's summary): its files are all stepnft's own and
+    nothing of it can resume. True if it did. The caller holds the folder's :func:`writer_lock`,
+    so no live process is writing it."""
+    if run_kind(run_dir) != kind or (run_dir / "summary.json").is_file():
+        return False
+    checkpoints = run_dir / "checkpoints"
+    if kind == "train" and ((checkpoints / "LATEST").is_file() or any(checkpoints.glob("iter_*"))):
+        return False
+    if any(p.name not in RUN_FILES and not p.name.startswith(".") for p in run_dir.iterdir()):
+        return False  # something a run does not write: the user's, so the folder stays as it is
+    for child in run_dir.iterdir():
+        if child.name != LOCK_NAME:
+            shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
+    return True
 
 
 def check_resumable(run_dir: Path) -> None:

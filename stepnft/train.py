@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import sys
 import time
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -27,7 +28,7 @@ from stepnft import distributed
 from stepnft.algos.base import RunDiverged, make_algorithm
 from stepnft.algos.sft import sft_stage
 from stepnft.checkpoint import load_checkpoint, save_checkpoint
-from stepnft.config import TrainConfig, load_config, save_config
+from stepnft.config import TrainConfig, load_config, save_config, to_dict
 from stepnft.data.demos import check_task_episodes, load_or_generate_demos
 from stepnft.devices import resolve_device
 from stepnft.envs import env_options, get_simulator, make_vec_env
@@ -36,8 +37,8 @@ from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks
 from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite, non_finite_samples, probe_rows
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
-from stepnft.runs import (MetricLogger, check_free, check_resumable, mark_run, plot_learning_curve, prepare_run_dir,
-                          run_kind, write_atomic)
+from stepnft.runs import (MetricLogger, check_free, check_resumable, clear_interrupted_start, mark_run,
+                          plot_learning_curve, prepare_run_dir, run_kind, write_atomic, writer_lock)
 
 
 def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> dict:
@@ -76,6 +77,37 @@ def train(cfg: TrainConfig, resume: bool = False, log: Callable[[str], None] = p
         # evaluation: a follower whose group outlived its peer's by minutes has aborted at exit.
         distributed.close(wait=True)
         return _finish(run, logger, sim, log)
+
+
+def checkpoint_settings(cfg: TrainConfig) -> dict:
+    """What a checkpoint records of the run's config: everything but where it runs
+    (``TrainConfig.resumable``), its length (``lengthening``, which a resume may raise) and its folder."""
+    skip = {"run_dir", *TrainConfig.resumable, *TrainConfig.lengthening}
+    settings = {k: v for k, v in to_dict(cfg).items() if k not in skip}
+    settings["algo"] = {k: v for k, v in settings["algo"].items() if k != "ema_horizon"}  # set from the length
+    return settings
+
+
+def check_config_matches(ckpt: dict, settings: dict, run_dir: Path) -> None:
+    """Refuse to resume when the folder's config.yaml no longer says what the checkpoint was
+    written under (edited by hand): one line naming the changed settings and how to go on."""
+    recorded = ckpt.get("config")
+    if recorded is None:  # written before checkpoints recorded their config: nothing to compare
+        return
+
+    def leaves(tree: dict, prefix: str = "") -> dict:
+        out = {}
+        for key, value in tree.items():
+            out |= leaves(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value}
+        return out
+
+    old, new = leaves(recorded), leaves(json.loads(json.dumps(settings)))
+    changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if changed:
+        shown = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:4]) + (" ..." if len(changed) > 4 else "")
+        raise ValueError(f"{run_dir}/config.yaml was edited after checkpoint {ckpt['path'].name} was written ({shown}): "
+                         f"restore it to resume, or start a new run from the edited config with `stepnft train --config "
+                         f"{run_dir}/config.yaml --run-dir NEW_DIR`")
 
 
 class TrainingRun:
@@ -127,6 +159,7 @@ class TrainingRun:
                log) -> "TrainingRun":
         """The run at its last checkpoint, exactly as it was."""
         ckpt = load_checkpoint(run_dir)
+        check_config_matches(ckpt, checkpoint_settings(cfg), run_dir)
         run = cls(cfg, run_dir, ckpt["policy"].to(cfg.device), collector, tasks)
         run.load_state_dict(ckpt["state"])
         log(f"resuming {run_dir} from iteration {run.progress.iteration} ({run.progress.env_steps} env steps)")
@@ -156,7 +189,8 @@ class TrainingRun:
         for policy in dict.fromkeys([self.policy, self.algo.eval_policy()]):
             self.check_samples(policy)
         with self.progress.timed("checkpoints"):
-            save_checkpoint(self.run_dir, self.progress.iteration, self.policy, self.state_dict())
+            save_checkpoint(self.run_dir, self.progress.iteration, self.policy, self.state_dict(),
+                            config=checkpoint_settings(self.cfg))
 
     def check_samples(self, policy: Policy) -> None:
         """Stop the run (RunDiverged) if ``policy`` samples non-finite actions on :attr:`probe`:
@@ -356,6 +390,10 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
                          "are the `cameras` of its config.json)")
     created = not Path(cfg.run_dir).exists()
     run_dir = prepare_run_dir(cfg.run_dir, must_exist=resume)
+    stack.enter_context(writer_lock(run_dir))  # one writer: a second process on this folder is refused
+    if not resume and clear_interrupted_start(run_dir, kind):
+        print(f"{run_dir}: removed an earlier start that was interrupted before its first checkpoint "
+              "(nothing to resume); starting anew", file=sys.stderr)
     if not resume and run_kind(run_dir) is None:  # a new or empty folder: this run's alone
         def remove_if_unfinished(exc_type, exc, tb):
             done = (run_dir / "checkpoints" / "LATEST").is_file() or (run_dir / "summary.json").is_file()

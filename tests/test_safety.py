@@ -285,7 +285,8 @@ def test_resume_follows_no_latest_out_of_its_run_and_says_how_to_repair_it(capsy
         load_checkpoint(runs["mine"])
     latest.write_text("iter_000004")  # the hint
     assert load_checkpoint(runs["mine"])["state"]["env_steps"] == 4
-    shutil.rmtree(runs["mine"] / "checkpoints")  # no checkpoint at all: start anew, and the hint says where
+    shutil.rmtree(runs["mine"] / "checkpoints")  # no checkpoint, and a file of the user's: kept, the hint says where
+    (runs["mine"] / "notes.txt").write_text("mine")
     line = one_line_error(capsys, "train", "--run-dir", runs["mine"])
     assert f"without a checkpoint to continue from: choose another --run-dir, or delete that one (`rm -r {runs['mine']}`)" in line
 
@@ -329,3 +330,25 @@ def test_the_sft_run_hint_works(capsys, tmp_path, bandit_demos, bandit_yaml):
 def test_config_naming_a_folder_says_so(capsys, tmp_path):
     line = one_line_error(capsys, "train", "--config", tmp_path)
     assert f"config file {tmp_path} is a folder: give a YAML file" in line
+
+
+def test_a_start_killed_before_its_first_checkpoint_is_cleared_by_the_next_start(tmp_path):
+    """kill -9 before the first checkpoint leaves run.json, config.yaml, metrics and an SFT policy:
+    nothing resumes from them, so the next start of the same kind empties the folder (and says so);
+    a folder with a checkpoint, a summary, another kind or a file of the user's is left alone."""
+    from stepnft.runs import clear_interrupted_start
+
+    run = tmp_path / "run"
+    (run / "sft_policy").mkdir(parents=True)
+    (run / "run.json").write_text('{"kind": "train"}')
+    (run / "config.yaml").write_text("seed: 0\n")
+    (run / "metrics.jsonl").write_text("{}\n")
+    assert not clear_interrupted_start(run, "sft") and (run / "run.json").is_file()  # another kind
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "iter_000002").mkdir()
+    assert not clear_interrupted_start(run, "train")  # it resumes
+    shutil.rmtree(run / "checkpoints")
+    (run / "notes.txt").write_text("mine")
+    assert not clear_interrupted_start(run, "train")  # the user's file
+    (run / "notes.txt").unlink()
+    assert clear_interrupted_start(run, "train") and list(run.iterdir()) == []

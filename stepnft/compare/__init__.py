@@ -32,6 +32,7 @@ from stepnft.compare.command import CompareCommand, command_line, help_text
 from stepnft.compare.plan import SFT, Job, comparison_config, env_flags, plan, suite_job
 from stepnft.compare.report import plot_comparison, write_report, write_suites_report
 from stepnft.compare.schedule import JobRunner, StatusFile, job_state, schedule, sigterm_as_interrupt
+from stepnft.runs import writer_lock
 from stepnft.compare.stats import T_975, load_result, load_sft, mean_ci, paired_differences, summarise, t_quantile
 from stepnft.evaluate import format_ci
 
@@ -44,6 +45,11 @@ __all__ = ["SFT", "T_975", "CompareCommand", "Job", "JobRunner", "StatusFile", "
 def run_compare(cmd: CompareCommand, log: Callable[[str], None] = print) -> int:
     """Run (or resume) the comparison and write its report; 0 if every run finished, else 1
     (130 when interrupted by Ctrl-C or SIGTERM)."""
+    with writer_lock(cmd.out):  # one comparison writes OUT (its runs lock their own folders)
+        return _run_compare(cmd, log)
+
+
+def _run_compare(cmd: CompareCommand, log: Callable[[str], None]) -> int:
     sft_jobs, run_jobs, out = plan(cmd)
     suite_jobs = {j.name: suite_job(cmd, j, out) for j in sft_jobs + run_jobs} if cmd.suites else {}
     # Each SFT is followed by its seed's runs, and each policy by its suite evaluation.

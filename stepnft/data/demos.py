@@ -38,6 +38,8 @@ seeded below 2**32, so demo initial states never coincide with theirs.
 """
 
 import json
+import shutil
+import sys
 import zipfile
 from collections.abc import Callable, Sequence
 from importlib.metadata import PackageNotFoundError, version
@@ -50,7 +52,7 @@ from tqdm import tqdm
 from stepnft.envs import get_simulator
 from stepnft.envs.episodes import DemoEpisode
 from stepnft.provenance import changed_since, code_commit, code_version
-from stepnft.runs import check_folder, write_atomic
+from stepnft.runs import LOCK_NAME, check_folder, write_atomic, writer_lock
 from stepnft.settings import DEMO_EPISODES_MAX
 
 __all__ = ["DemoEpisode", "check_task_episodes", "demo_cameras", "demo_seed", "demos_to_chunks", "generate_demos",
@@ -93,7 +95,11 @@ def generate_demos(
     visited, the labels stay the expert's).
     `simulator` is a registered name or a :class:`~stepnft.envs.base.Simulator`. With
     `cameras`, every step's camera views are recorded too (``images``). `out_dir` must be new
-    or empty; if generation fails, the files it wrote are removed again.
+    or empty, or hold a recording of the same settings that was interrupted: Ctrl-C or SIGTERM
+    keep the tasks recorded whole (:class:`DemosInterrupted`), kill -9 leaves them too, and the
+    same call continues with the next task, each task's episodes being the same as without the
+    interruption (a task's seeds and noise depend on the seed and the task alone). If generation
+    fails (a failing expert, bad input), the files it wrote are removed again.
     """
     sim = get_simulator(simulator) if isinstance(simulator, str) else simulator
     tasks = sim.validate_tasks(tasks)
@@ -103,27 +109,110 @@ def generate_demos(
     if (out_dir / "manifest.json").is_file():
         raise ValueError(f"{out_dir} already holds demonstrations: choose another demonstrations folder "
                          "(--demos.path), or delete that one to regenerate it")
-    created = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # removed again if generation fails
-    check_folder(out_dir, "demos", "--demos.path")
     settings = {"episodes_per_task": episodes, "max_attempts": max_attempts, "seed": seed, "action_noise": action_noise,
                 **({"dart": True} if dart else {}), "max_episode_steps": max_episode_steps,
                 **({"cameras": list(cameras), "image_size": image_size} if cameras else {})}
+    recording = {"simulator": sim.name, "tasks": tasks, "successful_only": successful_only, **settings}
+    finished = _interrupted_recording(out_dir, recording)  # None unless it continues one
+    created = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # removed again if generation fails
+    if finished is None:
+        check_folder(out_dir, "demos", "--demos.path")
+        finished = {}
+    else:
+        _remove_unfinished_tasks(out_dir, tasks)  # e.g. killed mid-task: that task is recorded again whole
+        if progress:
+            print(f"{out_dir}: continuing an interrupted recording ({len(finished)} of {len(tasks)} tasks recorded)",
+                  file=sys.stderr)
     entries, discarded = [], {}
-    try:
-        with tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress,
-                  mininterval=1.0) as bar:
+    with writer_lock(out_dir):
+        write_atomic(out_dir / RECORDING, json.dumps(recording))
+        try:
+            with tqdm(total=len(tasks) * episodes, desc="demos", unit="episode", disable=not progress,
+                      mininterval=1.0) as bar:
+                for task in tasks:
+                    if task in finished:  # recorded whole before an interruption: the same files
+                        entries += finished[task]["entries"]
+                        discarded[task] = finished[task]["discarded"]
+                        bar.update(len(finished[task]["entries"]))
+                        continue
+                    mine: list[dict] = []
+                    discarded[task] = _record_task(sim, task, out_dir, bar, successful_only=successful_only,
+                                                   written=mine, **settings)
+                    entries += mine
+                    write_atomic(out_dir / task / TASK_DONE, json.dumps({"entries": mine, "discarded": discarded[task]}))
+            write_atomic(out_dir / "manifest.json", json.dumps(_manifest(sim, tasks, entries, discarded, settings), indent=1))
             for task in tasks:
-                discarded[task] = _record_task(sim, task, out_dir, bar, successful_only=successful_only,
-                                               written=entries, **settings)
-        write_atomic(out_dir / "manifest.json", json.dumps(_manifest(sim, tasks, entries, discarded, settings), indent=1))
-    except BaseException:  # no episode files without their manifest: a rerun starts from an empty folder
-        for entry in entries:
-            (out_dir / entry["file"]).unlink(missing_ok=True)
-        for folder in [out_dir / t for t in tasks] + created:
-            if folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
-        raise
+                (out_dir / task / TASK_DONE).unlink(missing_ok=True)
+            (out_dir / RECORDING).unlink()
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the finished tasks stay, the same command continues
+            _remove_unfinished_tasks(out_dir, tasks)
+            raise DemosInterrupted(f"interrupted: {sum((out_dir / t / TASK_DONE).is_file() for t in tasks)} of "
+                                   f"{len(tasks)} tasks recorded in {out_dir}; rerun the same command to continue "
+                                   "the recording") from None
+        except BaseException:  # bad input or a failing expert: nothing of this recording is left
+            for task in tasks:
+                if (out_dir / task).is_dir():
+                    shutil.rmtree(out_dir / task)
+            (out_dir / RECORDING).unlink(missing_ok=True)
+            for folder in created:
+                if folder.is_dir() and [p.name for p in folder.iterdir()] in ([], [LOCK_NAME]):
+                    (folder / LOCK_NAME).unlink(missing_ok=True)
+                    folder.rmdir()
+            raise
     return out_dir
+
+
+RECORDING = ".recording.json"
+"""Hidden, while a recording runs or after it was interrupted: what it records (a rerun that asks for
+the same continues it; :func:`_interrupted_recording`)."""
+TASK_DONE = ".done.json"
+"""Hidden, in ``out_dir/<task>/`` of an unfinished recording: the task's episodes are all on disk."""
+
+
+class DemosInterrupted(KeyboardInterrupt):
+    """A recording stopped by Ctrl-C or SIGTERM; its message says how to continue it."""
+
+
+def _interrupted_recording(out_dir: Path, recording: dict) -> dict[str, dict] | None:
+    """The finished tasks (their manifest entries and discarded attempts) of an interrupted
+    recording in ``out_dir`` that asked for ``recording``; None when there is none. One that asked
+    for something else is refused in one line (it is the user's to finish or delete) unless it
+    finished no task yet: then it is cleared."""
+    path = out_dir / RECORDING
+    if not path.is_file():
+        return None
+    try:
+        recorded = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        recorded = None
+    if not isinstance(recorded, dict):
+        raise ValueError(f"{out_dir} holds an interrupted recording whose {RECORDING} is unreadable: delete the "
+                         f"folder (`rm -r {out_dir}`) to record again")
+    if recorded != recording and not list(out_dir.glob(f"*/{TASK_DONE}")):
+        for task in recorded.get("tasks", []) if isinstance(recorded.get("tasks"), list) else []:
+            if isinstance(task, str) and task and "/" not in task and (out_dir / task).is_dir():
+                shutil.rmtree(out_dir / task)
+        path.unlink()
+        return None
+    if recorded != recording:
+        changed = sorted(k for k in recording.keys() | recorded.keys() if recording.get(k) != recorded.get(k))
+        raise ValueError(f"{out_dir} holds an interrupted recording with other settings ({', '.join(changed)}): "
+                         "rerun the command that started it to finish it, or choose another --demos.path")
+    finished = {}
+    for task in recording["tasks"]:
+        try:
+            done = json.loads((out_dir / task / TASK_DONE).read_text())
+        except (OSError, UnicodeDecodeError, ValueError):
+            continue  # not finished (or torn): recorded again from its first attempt
+        if isinstance(done, dict) and all((out_dir / e["file"]).is_file() for e in done.get("entries", [])):
+            finished[task] = done
+    return finished
+
+
+def _remove_unfinished_tasks(out_dir: Path, tasks: list[str]) -> None:
+    for task in tasks:
+        if (out_dir / task).is_dir() and not (out_dir / task / TASK_DONE).is_file():
+            shutil.rmtree(out_dir / task)
 
 
 def _check_generation(episodes: int, max_attempts: int, seed: int, action_noise: float, dart: bool = False) -> None:
