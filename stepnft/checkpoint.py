@@ -112,10 +112,13 @@ def load_checkpoint(run_dir: Path) -> dict:
     try:
         policy = Policy.from_pretrained(ckpt / "policy")
         meta = json.loads((ckpt / "state.json").read_text())
+        if not isinstance(meta, dict):
+            raise ValueError(f"state.json holds a JSON {type(meta).__name__}, not an object")
         if meta.get("format_version") != FORMAT_VERSION:
             raise ValueError(f"checkpoint format {meta.get('format_version')}, this stepnft reads {FORMAT_VERSION}")
         state = unflatten_state(meta["state"], load_file(str(ckpt / "state.safetensors")))
-    except (FileNotFoundError, ValueError, KeyError, TypeError, OSError, SafetensorError, json.JSONDecodeError) as err:
+    except (FileNotFoundError, ValueError, KeyError, TypeError, OSError, SafetensorError, json.JSONDecodeError,
+            UnicodeDecodeError) as err:
         older = [p.name for p in _checkpoints(root) if p.name < ckpt.name]
         fix = (f"delete it and point LATEST at the one before (`rm -r {ckpt} && echo {older[-1]} > {root / 'LATEST'}`)"
                if older else f"no older checkpoint is left: start a new run in another --run-dir")
@@ -134,7 +137,10 @@ def latest_name(run_dir: Path) -> str:
     when it is missing or names anything but a checkpoint folder of this run."""
     root = Path(run_dir) / "checkpoints"
     latest = root / "LATEST"
-    name = latest.read_text().strip() if latest.is_file() else None
+    try:
+        name = latest.read_text().strip()[:200] if latest.is_file() else None
+    except UnicodeDecodeError:
+        name = "(bytes that are not text)"
     if name is not None and NAME.fullmatch(name) and (root / name).is_dir():
         return name
     found = _checkpoints(root)

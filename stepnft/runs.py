@@ -38,12 +38,17 @@ def prepare_run_dir(path: str | Path, must_exist: bool = False, flag: str = "--r
     run_dir = Path(path)
     if must_exist and not run_dir.is_dir():
         raise ValueError(f"run directory {run_dir} does not exist: nothing to resume")
+    created = [d for d in (run_dir, *run_dir.parents) if not d.exists()]
+    probe = run_dir / ".write-test"
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        probe = run_dir / ".write-test"
         probe.write_text("ok")
         probe.unlink()
     except OSError as err:
+        with contextlib.suppress(OSError):  # e.g. a full disk: leave nothing of the probe
+            probe.unlink(missing_ok=True)
+            for d in created:
+                d.rmdir()
         raise ValueError(f"cannot write to {run_dir} ({err.strerror}): choose another {flag}") from err
     return run_dir
 
