@@ -29,16 +29,18 @@ from torch import Tensor, nn
 
 from stepnft.batch import Batch
 from stepnft.devices import to_device
+from stepnft.plugins import PluginRegistry
 from stepnft.policies.base import Policy
 from stepnft.rollout.plan import RolloutSpec  # noqa: F401 - what an algorithm tells the collector
 from stepnft.settings import Range, SettingError, Settings
 
-ALGORITHMS: dict[str, str] = {
+ALGORITHMS: dict[str, str] = PluginRegistry("stepnft.algorithms", {
     "stepnft": "stepnft.algos.stepnft:StepNFT",
     "ppo": "stepnft.algos.ppo:PPO",
     "grpo": "stepnft.algos.grpo:GRPO",
-}
-"""Registered algorithms by ``algo.name`` (imported on first use). A new algorithm adds a line."""
+})
+"""Registered algorithms by ``algo.name`` (imported on first use): stepnft's own and those of
+installed packages (entry-point group ``stepnft.algorithms``, ``stepnft.plugins``)."""
 
 
 PER_VARIANT = {"per_variant": True}
@@ -340,7 +342,12 @@ def algorithm_class(name: str) -> type[Algorithm]:
     if name not in ALGORITHMS:
         raise SettingError(f"{{name}} must be one of {', '.join(ALGORITHMS)}", "algo", name)
     module, cls = ALGORITHMS[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    try:
+        return getattr(importlib.import_module(module), cls)
+    except (ImportError, AttributeError) as err:  # a plugin's module: one line naming it
+        reason = str(err).splitlines()[0].replace("{", "(").replace("}", ")") if str(err) else type(err).__name__
+        raise SettingError(f"{{name}} {name!r} ({ALGORITHMS.sources.get(name, 'stepnft')}) cannot be imported from "
+                           f"{ALGORITHMS[name]}: {reason}", "algo") from None
 
 
 def config_class(name: str) -> type[AlgoConfig]:

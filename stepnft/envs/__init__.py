@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
+from stepnft.plugins import PluginRegistry
+
 
 @dataclass(frozen=True)
 class SimulatorInfo:
@@ -34,13 +36,24 @@ class SimulatorInfo:
 DEFAULT_TASKS = ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3"]
 """The embedded default: five MetaWorld v3 tasks, one multi-task policy."""
 
-SIMULATORS: dict[str, SimulatorInfo] = {
+def _check_info(value) -> str | None:
+    if not isinstance(value, SimulatorInfo):
+        what = f"the class {value.__name__}" if isinstance(value, type) else f"a {type(value).__name__}"
+        return (f"its entry point must name a stepnft.envs.SimulatorInfo (whose target is the simulator class), "
+                f"not {what}")
+    if ":" not in value.target:
+        return f"its SimulatorInfo.target {value.target!r} must be 'module:Class'"
+    return None
+
+
+SIMULATORS: dict[str, SimulatorInfo] = PluginRegistry("stepnft.simulators", {
     "metaworld": SimulatorInfo("stepnft.envs.metaworld:MetaWorld", 500, tuple(DEFAULT_TASKS), opengl=True),
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",), "sparse"),
     "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse", True, opengl=True),
     "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
-}
-"""Registered simulators by config name (``env.name``). A new simulator adds one line here."""
+}, load=True, check=_check_info)
+"""Registered simulators by config name (``env.name``): stepnft's own and those of installed
+packages (entry-point group ``stepnft.simulators``, ``stepnft.plugins``)."""
 
 
 def get_simulator(name: str):

@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from stepnft.devices import to_device
+from stepnft.plugins import PluginRegistry
 from stepnft.runs import write_atomic
 from stepnft.sampling import ChunkSample, sample_chunk
 from stepnft.settings import read_settings_text
@@ -39,13 +40,14 @@ CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
 PROCESSOR_NAME = "processor.safetensors"
 
-POLICY_TYPES: dict[str, str] = {
+POLICY_TYPES: dict[str, str] = PluginRegistry("stepnft.policies", {
     "flow": "stepnft.policies.flow:FlowPolicy",
     "smolvla": "stepnft.policies.lerobot.smolvla:SmolVLAAdapter",
     "pi0": "stepnft.policies.lerobot.pi0:PI0Adapter",
     "pi05": "stepnft.policies.lerobot.pi0:PI05Adapter",
-}
-"""Registered policy classes by saved ``type`` (imported on first use). A new policy adds a line."""
+})
+"""Registered policy classes by saved ``type`` (imported on first use): stepnft's own and those
+of installed packages (entry-point group ``stepnft.policies``, ``stepnft.plugins``)."""
 
 
 def non_finite(tensors: dict[str, Tensor]) -> list[str]:
