@@ -102,17 +102,19 @@ def format_ci(stats: tuple[float, float, float], signed: bool = False) -> str:
 
 
 def format_table(before: dict | None, after: dict) -> str:
-    """A plain-text table: task, success before -> after with 95 % CIs."""
+    """A plain-text table: task, success before -> after with 95 % CIs (the task column as wide
+    as the longest name, at least 18)."""
     cell = lambda r: format_ci((r["success"], *r["ci95"]))  # noqa: E731
+    w = max([18, *map(len, after["tasks"])])
     if before is None:
-        lines = [f"{'task':<18} {'success [95% CI]':>22}"]
-        lines += [f"{task:<18} {cell(res):>22}" for task, res in after["tasks"].items()]
-        lines.append(f"{'average':<18} {after['average']:>22.3f}")
+        lines = [f"{'task':<{w}} {'success [95% CI]':>22}"]
+        lines += [f"{task:<{w}} {cell(res):>22}" for task, res in after["tasks"].items()]
+        lines.append(f"{'average':<{w}} {after['average']:>22.3f}")
         return "\n".join(lines)
-    lines = [f"{'task':<18} {'before':>22} {'after':>22}"]
+    lines = [f"{'task':<{w}} {'before':>22} {'after':>22}"]
     for task, res in after["tasks"].items():
-        lines.append(f"{task:<18} {cell(before['tasks'][task]):>22} {cell(res):>22}")
-    lines.append(f"{'average':<18} {before['average']:>22.3f} {after['average']:>22.3f}")
+        lines.append(f"{task:<{w}} {cell(before['tasks'][task]):>22} {cell(res):>22}")
+    lines.append(f"{'average':<{w}} {before['average']:>22.3f} {after['average']:>22.3f}")
     return "\n".join(lines)
 
 

@@ -114,3 +114,11 @@ def test_record_videos_writes_one_frame_per_env_step(tmp_path, monkeypatch):
     assert len(frames) == 1 + 10  # the reset, then every env step
     assert frames[0].shape == (64, 64, 3) and frames[-1].std() > 0
     assert sorted(p.name for p in (tmp_path / "videos").iterdir()) == ["reach-v3_ep0_fail.mp4"]
+
+
+def test_the_table_aligns_long_task_names_and_keeps_the_default_width():
+    row = {"success": 1.0, "ci95": [0.3, 1.0]}
+    long = format_table(None, {"tasks": {"button-press-topdown-v3": row, "reach-v3": row}, "average": 1.0})
+    assert len({line.index("[") for line in long.splitlines()[1:3]}) == 1  # the CIs in one column
+    short = format_table(None, {"tasks": {"reach-v3": row}, "average": 1.0})
+    assert short.splitlines()[1].startswith("reach-v3" + " " * 10 + " ")  # 18 wide, as the README's tables
