@@ -86,6 +86,9 @@ def _parse(cls, argv: list[str], default, prog: str, description: str | None = N
                        or f"{_first_message(errors.getvalue())}; see `{prog} --help`")
             raise UsageError(message) from None
         raise
+    policy = getattr(default, "policy", None)
+    if isinstance(values.get("policy"), dict) and hasattr(policy, "type"):
+        values["policy"] = {"type": policy.type, **values["policy"]}  # the class the flags were parsed for
     try:
         return from_dict(cls, values)
     except SettingError as err:
@@ -182,7 +185,9 @@ def _describe(cls) -> str:
         from stepnft.algos.base import ALGORITHMS
 
         doc += (f" --algo.name picks the algorithm ({', '.join(ALGORITHMS)}); the --algo.* flags listed are"
-                " the chosen one's (`stepnft train --algo.name NAME --help`). Extra flags: --config FILE.yaml"
+                " the chosen one's (`stepnft train --algo.name NAME --help`); --policy.type picks the policy built"
+                " when there is no --init (flow by default, or a plugin's type: docs/extending.md), and the"
+                " --policy.* flags are then that type's. Extra flags: --config FILE.yaml"
                 " (defaults for every flag below; a run's config.yaml reproduces it), --resume RUN_DIR (continue"
                 f" the last checkpoint of a run; it takes no other flags than {_resumable_flags()}: a larger"
                 " --iterations or --env-step-budget lengthens a finished run).")
@@ -196,10 +201,47 @@ def _option(argv: list[str], flag: str) -> str | None:
     return parser.parse_known_args(argv)[0].value
 
 
+def _take_option(argv: list[str], flag: str) -> tuple[str | None, list[str]]:
+    """The value of option ``flag`` in ``argv`` (``--flag V`` or ``--flag=V``; the last one given)
+    and ``argv`` without it."""
+    value, rest, args = None, [], iter(argv)
+    for arg in args:
+        if arg == flag:
+            value = next(args, None)
+            if value is None:
+                raise UsageError(f"{flag} needs a value")
+        elif arg.startswith(flag + "="):
+            value = arg.partition("=")[2]
+        else:
+            rest.append(arg)
+    return value, rest
+
+
+def _with_policy_type(base, type_name: str | None):
+    """``base`` with a policy config of type ``type_name`` (``--policy.type``) when it names another
+    type than ``base``'s: the settings both types declare keep ``base``'s values (the sizes a
+    config file set for its simulator), the others take the new type's defaults. A UsageError
+    with one line for a type that cannot be built."""
+    from stepnft.policies.base import policy_config_class
+    from stepnft.settings import SettingError
+
+    if type_name is None or type_name == base.policy.type:
+        return base
+    try:
+        cls = policy_config_class(type_name)
+        names = {f.name for f in dataclasses.fields(cls)} & {f.name for f in dataclasses.fields(base.policy)}
+        return dataclasses.replace(base, policy=cls(**{name: getattr(base.policy, name) for name in names}))
+    except SettingError as err:
+        raise UsageError(err.as_flags()) from None
+    except ValueError as err:
+        raise UsageError(f"--policy.type: {err}") from None
+
+
 def _config_from_argv(argv: list[str], prog: str, allow_resume: bool, base=None):
-    """``--config FILE`` (a YAML file) or ``--resume RUN`` (a run's config.yaml), and
-    ``--algo.name`` (that algorithm's defaults), give the defaults the other flags are parsed
-    over (else ``base`` or ``TrainConfig()``). Returns ``(TrainConfig, resumed)``."""
+    """``--config FILE`` (a YAML file) or ``--resume RUN`` (a run's config.yaml), ``--algo.name``
+    (that algorithm's defaults) and ``--policy.type`` (that policy type's defaults) give the
+    defaults the other flags are parsed over (else ``base`` or ``TrainConfig()``). Returns
+    ``(TrainConfig, resumed)``."""
     from stepnft.algos.base import config_class
     from stepnft.config import TrainConfig, load_config
     from stepnft.settings import SettingError
@@ -218,7 +260,9 @@ def _config_from_argv(argv: list[str], prog: str, allow_resume: bool, base=None)
             base = dataclasses.replace(base, algo=config_class(name)())  # that algorithm's defaults
         except SettingError as err:
             raise UsageError(err.as_flags()) from None
-    return _parse(TrainConfig, rest, base, prog), False
+    # policy.type is no field (it is the config's class), so it is taken here, not by the parser.
+    type_name, rest = _take_option(rest, "--policy.type")
+    return _parse(TrainConfig, rest, _with_policy_type(base, type_name), prog), False
 
 
 def _resumed_config(run_dir: str, config: str | None, rest: list[str], prog: str):
@@ -234,9 +278,13 @@ def _resumed_config(run_dir: str, config: str | None, rest: list[str], prog: str
     # The folder may have been moved or copied since its config.yaml was written.
     cfg = dataclasses.replace(load_config(cfg_path), run_dir=run_dir)
     name = _option(rest, "--algo.name")
-    parsed = _parse(TrainConfig, rest, cfg, prog) if name in (None, cfg.algo.name) else None
+    type_name, rest = _take_option(rest, "--policy.type")
+    same = name in (None, cfg.algo.name) and type_name in (None, cfg.policy.type)
+    parsed = _parse(TrainConfig, rest, cfg, prog) if same else None
     skip = TrainConfig.resumable + TrainConfig.lengthening
-    changed = ["--algo.name"] if parsed is None else _differences(cfg, parsed, skip=skip)
+    switched = (("--algo.name", name, cfg.algo.name), ("--policy.type", type_name, cfg.policy.type))
+    changed = ([flag for flag, value, own in switched if value not in (None, own)]
+               if parsed is None else _differences(cfg, parsed, skip=skip))
     if changed:
         raise UsageError(f"--resume continues a run with its own config.yaml and takes no other flags than "
                          f"{_resumable_flags()}; drop: {' '.join(changed)}")

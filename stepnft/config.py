@@ -27,6 +27,8 @@ from stepnft.algos.stepnft import StepNFTConfig
 from stepnft.devices import check_device_name
 from stepnft.envs import DEFAULT_TASKS, SIMULATORS
 from stepnft.envs.perturbations import FAMILY, expand
+from stepnft.policies.base import policy_config_class
+from stepnft.policies.configuration import PolicyConfig
 from stepnft.policies.flow import FlowPolicyConfig
 from stepnft.settings import (DEMO_EPISODES_MAX, EVAL_SEEDS_END, ITERATIONS_MAX, SEED_MAX, Check, Range, Settings,
                               read_settings_text)
@@ -261,7 +263,10 @@ class TrainConfig(Settings):
     gradients. A resumed run may change it."""
     env: EnvConfig = field(default_factory=EnvConfig)
     demos: DemoConfig = field(default_factory=DemoConfig)
-    policy: FlowPolicyConfig = field(default_factory=FlowPolicyConfig)
+    policy: PolicyConfig = field(default_factory=FlowPolicyConfig)
+    """The policy built from scratch when there is no ``init``: ``policy.type`` picks its config
+    class (the flow MLP's, ``flow``, by default; a registered type of a plugin: docs/extending.md),
+    whose fields are then the ``--policy.*`` settings."""
     sft: SFTConfig = field(default_factory=SFTConfig)
     algo: AlgoConfig = field(default_factory=StepNFTConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -269,8 +274,9 @@ class TrainConfig(Settings):
 
     def check(self) -> None:
         # An --init policy brings its own cameras (checked when the run starts).
-        if self.init is None and self.policy.cameras != self.env.cameras:
-            raise self.fail(f"{{policy.cameras}} {self.policy.cameras} differ from {{env.cameras}} {self.env.cameras}: "
+        cameras = list(getattr(self.policy, "cameras", []))  # a policy config without cameras sees none
+        if self.init is None and cameras != list(self.env.cameras):
+            raise self.fail(f"{{policy.cameras}} {cameras} differ from {{env.cameras}} {self.env.cameras}: "
                             "give both the same list (e.g. --config configs/image.yaml)")
 
 
@@ -306,7 +312,9 @@ class EvalCommand(Settings):
 
 
 def to_dict(cfg) -> dict:
-    """Plain nested dict of a config (tuples as lists, so it is safe YAML)."""
+    """Plain nested dict of a config (tuples as lists, so it is safe YAML). A policy section of
+    another type than ``flow`` starts with its ``type`` (a flow one leaves it out, so configs and
+    checkpoints written before policy types were settings read the same)."""
     def plain(value):
         if isinstance(value, dict):
             return {k: plain(v) for k, v in value.items()}
@@ -314,17 +322,31 @@ def to_dict(cfg) -> dict:
             return [plain(v) for v in value]
         return value
 
-    return plain(dataclasses.asdict(cfg))
+    data = plain(dataclasses.asdict(cfg))
+    policy = getattr(cfg, "policy", None)
+    if isinstance(policy, PolicyConfig) and policy.type != FlowPolicyConfig.type:
+        data["policy"] = {"type": policy.type, **data["policy"]}
+    return data
 
 
 def from_dict(cls, data: dict, where: str = ""):
     """Build config dataclass ``cls`` from a nested dict (a YAML file, or the values of parsed
     flags). An unknown key is a ValueError naming it; every value is checked where its section is
-    built (``stepnft.settings``). An ``algo`` section is built as the config class of its ``name``."""
+    built (``stepnft.settings``). An ``algo`` section is built as the config class of its ``name``,
+    a ``policy`` section as that of its ``type`` (``flow`` when it has none)."""
     if not isinstance(data, dict):
         raise ValueError(f"config section {where or 'root'} must be a mapping, got {type(data).__name__}")
     if cls is AlgoConfig:
         cls = config_class(data.get("name", StepNFTConfig.name))
+    if cls is PolicyConfig:
+        data = dict(data)
+        type_name = data.pop("type", FlowPolicyConfig.type)
+        if not isinstance(type_name, str):
+            raise ValueError(f"config key '{where}type' must be a policy type name, got {type_name!r}")
+        try:
+            cls = policy_config_class(type_name)
+        except ValueError as err:
+            raise ValueError(f"{where}type: {err}") from None
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     kwargs = {}

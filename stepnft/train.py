@@ -444,7 +444,7 @@ def _follow(cfg: TrainConfig) -> dict:
 def _init_policy(cfg: TrainConfig) -> Policy:
     """The ``--init`` policy, checked against the run's policy settings before anything is written."""
     policy = load_policy(cfg.init).to(cfg.device)
-    if policy.type == "flow" and policy.config != cfg.policy:
+    if policy.type == cfg.policy.type and policy.config != cfg.policy:
         # The envs and config.yaml were built for cfg.policy.
         raise ValueError(f"--init policy {cfg.init} was built with other policy settings than this run's: "
                          f"pass the same --policy.* flags it was trained with (see its config.json)")

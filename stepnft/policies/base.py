@@ -32,6 +32,7 @@ from torch.utils.checkpoint import checkpoint
 
 from stepnft.devices import to_device
 from stepnft.plugins import PluginRegistry
+from stepnft.policies.configuration import PolicyConfig, missing_run_fields
 from stepnft.runs import write_atomic
 from stepnft.sampling import ChunkSample, sample_chunk
 from stepnft.settings import read_settings_text
@@ -114,6 +115,24 @@ def policy_class(type_name: str) -> type["Policy"]:
         return getattr(importlib.import_module(module), cls)
     except ImportError as err:  # an optional extra (e.g. LeRobot) is missing: say which, in one line
         raise PolicyUnavailable(f"policy type {type_name!r}: {str(err).splitlines()[0]}") from err
+
+
+def policy_config_class(type_name: str) -> type[PolicyConfig]:
+    """The config class of policy type ``type_name`` (``policy.type`` of a run): a ValueError
+    with one line if the type is unknown, needs a missing extra, builds only from a saved folder
+    (a LeRobot VLA: ``--init FOLDER``) or lacks a setting the run reads."""
+    cls = policy_class(type_name).config_class
+    if not (isinstance(cls, type) and issubclass(cls, PolicyConfig)):
+        raise ValueError(f"policy type {type_name!r} is built from a saved policy folder, not from settings: "
+                         f"start from one with --init FOLDER (docs/lerobot.md)")
+    if cls.type != type_name:  # it would be saved, and read back, as another type
+        raise ValueError(f"policy type {type_name!r}: its config {cls.__name__} says type {cls.type!r}: declare "
+                         f"`type: ClassVar[str] = {type_name!r}` in it")
+    missing = missing_run_fields(cls)
+    if missing:
+        raise ValueError(f"policy type {type_name!r}: its config {cls.__name__} lacks {', '.join(missing)}, which a "
+                         "run reads (stepnft.policies.configuration.RUN_FIELDS)")
+    return cls
 
 
 class Policy(nn.Module, ABC):

@@ -13,13 +13,14 @@ from pathlib import Path
 import pytest
 
 MODULE = '''
+import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
 from stepnft.algos.stepnft import StepNFT, StepNFTConfig
 from stepnft.envs import SimulatorInfo
 from stepnft.envs.bandit import Bandit
-from stepnft.policies.flow import FlowPolicy
+from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
 
 INFO = SimulatorInfo("myplug:MyBandit", 64, ("bandit",), "sparse")
 
@@ -28,8 +29,21 @@ class MyBandit(Bandit):
     name = "mybandit"
 
 
+@dataclass
+class MyPolicyConfig(FlowPolicyConfig):
+    type: ClassVar[str] = "mypolicy"
+    extra_layers: int = 0
+
+
 class MyPolicy(FlowPolicy):
     type = "mypolicy"
+    config_class = MyPolicyConfig
+
+    def __init__(self, config):
+        super().__init__(dataclasses.replace(FlowPolicyConfig(**{k: v for k, v in config.to_dict().items()
+                                                                 if k != "extra_layers"}),
+                                             num_layers=config.num_layers + config.extra_layers))
+        self.config = config
 
 
 @dataclass
@@ -98,6 +112,31 @@ def test_a_run_trains_on_a_plugin_simulator_with_a_plugin_algorithm(tmp_path):
     config = (tmp_path / "run" / "config.yaml").read_text()
     assert "name: mybandit" in config and "name: myalgo" in config
     assert (tmp_path / "run" / "policy" / "model.safetensors").is_file()
+
+
+def test_a_run_builds_a_plugin_policy_type_from_scratch(tmp_path):
+    """--policy.type: a registered type's config gives the --policy.* flags; no --init folder."""
+    import json
+
+    from stepnft.config import save_config
+    from stepnft.demo_bandit import bandit_config
+
+    save_config(bandit_config(), tmp_path / "bandit.yaml")
+    site = install(tmp_path / "site", ENTRY_POINTS)
+    done = run(site, "train", "--config", tmp_path / "bandit.yaml", "--policy.type", "mypolicy",
+               "--policy.extra-layers", 2, "--run-dir", tmp_path / "run", "--demos.path", tmp_path / "demos",
+               "--iterations", 2, "--episodes-per-iteration", 64, "--env.envs-per-task", 64, "--demos.episodes", 64,
+               "--sft.steps", 20, "--eval.episodes", 16, "--eval.during-episodes", 16, "--algo.minibatch-size", 64)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "type: mypolicy" in (tmp_path / "run" / "config.yaml").read_text()
+    saved = json.loads((tmp_path / "run" / "policy" / "config.json").read_text())
+    assert saved["type"] == "mypolicy" and saved["extra_layers"] == 2
+    # The run's config.yaml reproduces it, and the saved policy loads by its type.
+    again = run(site, "train", "--resume", tmp_path / "run", "--iterations", 3)
+    assert again.returncode == 0, again.stderr[-3000:]
+    evaluated = run(site, "eval", "--policy", tmp_path / "run" / "policy", "--env.name", "mybandit",
+                    "--env.tasks", "bandit", "--env.max-episode-steps", 16, "--eval.episodes", 8)
+    assert evaluated.returncode == 0, evaluated.stderr[-3000:]
 
 
 @pytest.mark.parametrize("entry, message", [

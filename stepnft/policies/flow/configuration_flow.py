@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Annotated, ClassVar
 
-from stepnft.settings import WIDTH_MAX, Check, Range, Settings
+from stepnft.policies.configuration import PolicyConfig
+from stepnft.settings import WIDTH_MAX, Check, Range
 
 
 @dataclass
-class FlowPolicyConfig(Settings):
+class FlowPolicyConfig(PolicyConfig):
     """Sizes and sampling settings of a :class:`FlowPolicy`; saved as ``config.json``."""
 
     type: ClassVar[str] = "flow"
@@ -57,16 +58,3 @@ class FlowPolicyConfig(Settings):
             raise self.fail(f"{{n_exec}} ({self.n_exec}) must be <= {{horizon}} ({self.horizon})")
         if self.time_embed_dim % 2:
             raise self.fail("{time_embed_dim} must be even (sine and cosine pairs)", self.time_embed_dim)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "FlowPolicyConfig":
-        """The config saved in a policy's ``config.json`` (without ``type``); an unknown key or a
-        bad value is a ValueError naming it."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown policy config keys {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**data)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from stepnft.policies.flow.configuration_flow import FlowPolicyConfig
+from stepnft.policies.configuration import PolicyConfig
 from stepnft.settings import WIDTH_MAX
 
 TRAIN_SCOPES = ("expert", "expert+state", "vlm")
@@ -83,9 +83,10 @@ class LeRobotPolicyConfig:
         if self.horizon and self.n_exec > self.horizon:
             raise ValueError(f"policy n_exec ({self.n_exec}) must be <= the chunk size ({self.horizon})")
 
-    # The flow policy's JSON round trip (unknown keys refused), shared.
-    to_dict = FlowPolicyConfig.to_dict
-    from_dict = classmethod(FlowPolicyConfig.from_dict.__func__)
+    # The JSON round trip of every policy config (unknown keys refused), shared; not a run section
+    # (a LeRobot policy enters a run as a folder: --init).
+    to_dict = PolicyConfig.to_dict
+    from_dict = classmethod(PolicyConfig.from_dict.__func__)
 
     @classmethod
     def read(cls, directory: str | Path) -> "LeRobotPolicyConfig":
