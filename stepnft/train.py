@@ -88,9 +88,12 @@ def checkpoint_settings(cfg: TrainConfig) -> dict:
     return settings
 
 
-def check_config_matches(ckpt: dict, settings: dict, run_dir: Path) -> None:
+def check_config_matches(ckpt: dict, settings: dict, run_dir: Path, defaults: dict | None = None) -> None:
     """Refuse to resume when the folder's config.yaml no longer says what the checkpoint was
-    written under (edited by hand): one line naming the changed settings and how to go on."""
+    written under (edited by hand): one line naming the changed settings and how to go on.
+    ``defaults`` (:func:`checkpoint_settings` of a default config of the run's algorithm and policy
+    type): a setting the checkpoint does not record (added to stepnft after it was written) is
+    no change while it has its default value, so a newer stepnft resumes an older run."""
     recorded = ckpt.get("config")
     if recorded is None:  # written before checkpoints recorded their config: nothing to compare
         return
@@ -102,9 +105,10 @@ def check_config_matches(ckpt: dict, settings: dict, run_dir: Path) -> None:
         return out
 
     old, new = leaves(recorded), leaves(json.loads(json.dumps(settings)))
-    changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    default = leaves(json.loads(json.dumps(defaults))) if defaults else {}
+    changed = sorted(k for k in old.keys() | new.keys() if old.get(k, default.get(k)) != new.get(k))
     if changed:
-        shown = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:4]) + (" ..." if len(changed) > 4 else "")
+        shown = ", ".join(f"{k} {old.get(k, default.get(k))!r} -> {new.get(k)!r}" for k in changed[:4]) + (" ..." if len(changed) > 4 else "")
         raise ValueError(f"{run_dir}/config.yaml was edited after checkpoint {ckpt['path'].name} was written ({shown}): "
                          f"restore it to resume, or start a new run from the edited config with `stepnft train --config "
                          f"{run_dir}/config.yaml --run-dir NEW_DIR`")
@@ -159,7 +163,8 @@ class TrainingRun:
                log) -> "TrainingRun":
         """The run at its last checkpoint, exactly as it was."""
         ckpt = load_checkpoint(run_dir)
-        check_config_matches(ckpt, checkpoint_settings(cfg), run_dir)
+        defaults = dataclasses.replace(TrainConfig(), algo=type(cfg.algo)(), policy=type(cfg.policy)())
+        check_config_matches(ckpt, checkpoint_settings(cfg), run_dir, checkpoint_settings(defaults))
         run = cls(cfg, run_dir, ckpt["policy"].to(cfg.device), collector, tasks)
         run.load_state_dict(ckpt["state"])
         log(f"resuming {run_dir} from iteration {run.progress.iteration} ({run.progress.env_steps} env steps)")

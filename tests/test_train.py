@@ -365,3 +365,23 @@ def test_per_task_metrics_are_logged_under_each_task_name():
     assert _per_task(metrics, ["reach-v3", "push-v3"]) == {
         "losses/E_pos": 0.7, "labels/pos_frac/reach-v3": 0.5, "labels/pos_frac/push-v3": None,
         "losses/E_pos/reach-v3": 0.1, "losses/E_pos/push-v3": None}
+
+
+def test_a_setting_added_after_a_checkpoint_is_no_change_at_its_default(tmp_path):
+    """A newer stepnft resumes an older run: a setting its checkpoint does not record counts as
+    unchanged while it holds its default; any other value, or an edited recorded one, is refused."""
+    from stepnft.train import check_config_matches
+
+    recorded = {"algo": {"lr": 1e-4}, "env": {"name": "metaworld"}}
+    ckpt = {"config": recorded, "path": tmp_path / "iter_000002"}
+    defaults = {"algo": {"lr": 1e-4, "new_switch": False}, "env": {"name": "metaworld"}}
+    check_config_matches(ckpt, {"algo": {"lr": 1e-4, "new_switch": False}, "env": {"name": "metaworld"}},
+                         tmp_path, defaults)
+    with pytest.raises(ValueError, match=r"algo.new_switch False -> True"):
+        check_config_matches(ckpt, {"algo": {"lr": 1e-4, "new_switch": True}, "env": {"name": "metaworld"}},
+                             tmp_path, defaults)
+    with pytest.raises(ValueError, match=r"algo.new_switch None -> False"):  # without defaults: any new key
+        check_config_matches(ckpt, {"algo": {"lr": 1e-4, "new_switch": False}, "env": {"name": "metaworld"}}, tmp_path)
+    with pytest.raises(ValueError, match=r"algo.lr 0.0001 -> 0.001"):
+        check_config_matches(ckpt, {"algo": {"lr": 1e-3, "new_switch": False}, "env": {"name": "metaworld"}},
+                             tmp_path, defaults)
