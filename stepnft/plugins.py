@@ -8,13 +8,16 @@ A package adds one line per part to its ``pyproject.toml``, and stepnft needs no
     mypolicy = "my_pkg.policy:MyPolicy"  # a stepnft.policies.base.Policy subclass (its saved ``type``)
     [project.entry-points."stepnft.algorithms"]
     myalgo = "my_pkg.algo:MyAlgo"        # a stepnft.algos.base.Algorithm subclass (``algo.name``)
+    [project.entry-points."stepnft.variants"]
+    myalgo-fast = "my_pkg.algo:FAST"     # a stepnft.algos.variants.Variant (``stepnft compare --algos``)
 
 The registries (``stepnft.envs.SIMULATORS``, ``stepnft.policies.base.POLICY_TYPES``,
-``stepnft.algos.base.ALGORITHMS``) keep their names and their values' types; each is a
+``stepnft.algos.base.ALGORITHMS``, ``stepnft.algos.variants.VARIANTS``) keep their names and
+their values' types; each is a
 :class:`PluginRegistry` that merges its group's entry points on its first lookup, in every
 process that looks (Ray workers and torchrun ranks look names up too, so they see the same
 plugins). Policies and algorithms stay lazy (``module:Class`` strings, imported on first use); a
-simulator's entry point is loaded at once, since the config checks its facts (episode length,
+simulator's or a variant's entry point is loaded at once, since the config checks its facts (episode length,
 tasks) before anything is built. A plugin whose name is taken, or whose simulator entry point
 fails to load, is a :class:`PluginError`: one line naming its package.
 """
@@ -24,7 +27,7 @@ from __future__ import annotations
 from importlib.metadata import entry_points
 from typing import Any, Callable
 
-GROUPS = ("stepnft.simulators", "stepnft.policies", "stepnft.algorithms")
+GROUPS = ("stepnft.simulators", "stepnft.policies", "stepnft.algorithms", "stepnft.variants")
 """The entry-point groups stepnft reads."""
 
 

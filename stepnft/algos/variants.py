@@ -10,7 +10,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from stepnft.algos.base import AlgoConfig, config_class
+from stepnft.algos.base import ALGORITHMS, AlgoConfig, config_class
+from stepnft.plugins import PluginRegistry
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,14 @@ PAPER_ALGO: dict[str, Any] = {
 configs/paper.yaml; the learning rate, epochs and minibatch stay the base config's (the paper's
 lr 1e-5 is for a 3B VLA and 64-128 envs)."""
 
-VARIANTS: dict[str, Variant] = {
+def _check_variant(value) -> str | None:
+    if not isinstance(value, Variant):
+        what = f"the class {value.__name__}" if isinstance(value, type) else f"a {type(value).__name__}"
+        return f"its entry point must name a stepnft.algos.variants.Variant, not {what}"
+    return None
+
+
+VARIANTS: dict[str, Variant] = PluginRegistry("stepnft.variants", {
     "stepnft": Variant("stepnft", "π-StepNFT with the base config's (tuned) settings"),
     "paper": Variant("stepnft", "π-StepNFT with the paper's settings (configs/paper.yaml)", PAPER_ALGO),
     "ode": Variant("stepnft", "ablation: ODE exploration (noise 0): no ranking signal", {"noise_level": 0.0}),
@@ -69,8 +77,25 @@ VARIANTS: dict[str, Variant] = {
     "ppo-shared-shaped": Variant("ppo", "ppo-shared on the shaped reward too",
                                  {"critic_shares_encoder": True, "reward": "shaped"}),
     "grpo-shaped": Variant("grpo", "grpo on the shaped reward too (lr 3e-5)", {"lr": 3e-5, "reward": "shaped"}),
-}
-"""Every variant ``stepnft compare`` knows. A new one adds a line."""
+}, load=True, check=_check_variant)
+"""Every variant ``stepnft compare`` knows: stepnft's own and those of installed packages
+(entry-point group ``stepnft.variants`` naming a :class:`Variant`, ``stepnft.plugins``). A new
+one here adds a line. Any registered algorithm's name is a variant too (:func:`get_variant`)."""
+
+
+def variant_names() -> list[str]:
+    """Every name :func:`get_variant` takes: the variants, then the algorithms that are none."""
+    return [*VARIANTS, *(a for a in ALGORITHMS if a not in VARIANTS)]
+
+
+def get_variant(name: str) -> Variant:
+    """Variant ``name``: a registered one, or a registered algorithm with the base config's
+    settings (a plugin algorithm: ``--algos myalgo``); a ValueError listing both otherwise."""
+    if name in VARIANTS:
+        return VARIANTS[name]
+    if name in ALGORITHMS:
+        return Variant(name, f"the registered algorithm {name!r} ({ALGORITHMS.sources.get(name, 'stepnft')})")
+    raise ValueError(f"unknown variant {name!r}; choose from: {', '.join(variant_names())}")
 
 SHARED_FIELDS = tuple(f.name for f in dataclasses.fields(AlgoConfig) if not f.metadata.get("per_variant"))
 """What a variant of another algorithm keeps from the base config: the settings every algorithm
@@ -81,9 +106,7 @@ choices; those marked ``PER_VARIANT`` (the name, ``sde_steps``, ``group_size``) 
 def variant_config(name: str, base: AlgoConfig) -> AlgoConfig:
     """The algo config of variant ``name`` on top of ``base``: all of ``base`` when it is the
     same algorithm, else its :data:`SHARED_FIELDS`; then the variant's overrides."""
-    if name not in VARIANTS:
-        raise ValueError(f"unknown variant {name!r}; choose from: {', '.join(VARIANTS)}")
-    variant = VARIANTS[name]
+    variant = get_variant(name)
     values = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
     if base.name != variant.algo:
         values = {k: v for k, v in values.items() if k in SHARED_FIELDS}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from stepnft.algos.variants import VARIANTS, describe_variants
+from stepnft.algos.variants import describe_variants, variant_names
 from stepnft.names import split_names
 from stepnft.settings import EVAL_SEEDS_END, SEED_MAX
 
@@ -57,11 +57,12 @@ class CompareCommand:
         self.algos = list(dict.fromkeys(split_names(self.algos)))
         self.tasks = split_names(self.tasks) or None
         self.suites = split_names(self.suites)
-        unknown = [a for a in self.algos if a not in VARIANTS]
+        known = variant_names()
+        unknown = [a for a in self.algos if a not in known]
         if not self.algos or unknown:
-            raise ValueError(f"--algos {','.join(unknown) or '(none)'}: choose from {', '.join(VARIANTS)}")
-        if self.reference not in VARIANTS:
-            raise ValueError(f"--reference must be one of {', '.join(VARIANTS)}, got {self.reference!r}")
+            raise ValueError(f"--algos {','.join(unknown) or '(none)'}: choose from {', '.join(known)}")
+        if self.reference not in known:
+            raise ValueError(f"--reference must be one of {', '.join(known)}, got {self.reference!r}")
         for flag, path in (("--config", self.config), ("--out", self.out)):
             if not path.strip():
                 raise ValueError(f"{flag} must be a path (not empty), got {path!r}")
@@ -87,7 +88,7 @@ class CompareCommand:
         for item in self.variant_set:
             key, sep, value = item.partition("=")
             # Variant names may hold dots (beta-0.5): the longest one that prefixes the key.
-            names = sorted((n for n in VARIANTS if key.startswith(n + ".")), key=len, reverse=True)
+            names = sorted((n for n in variant_names() if key.startswith(n + ".")), key=len, reverse=True)
             if not sep or not names or not key[len(names[0]) + 1:]:
                 raise ValueError(f"--variant-set {item}: expected VARIANT.FIELD=VALUE, e.g. ppo-shaped.lr=3e-5")
             name, name_field = names[0], key[len(names[0]) + 1:]

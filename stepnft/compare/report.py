@@ -11,7 +11,7 @@ import json
 import math
 from pathlib import Path
 
-from stepnft.algos.variants import VARIANTS
+from stepnft.algos.variants import get_variant
 from stepnft.compare.command import CompareCommand, command_line
 from stepnft.compare.plan import SFT
 from stepnft.compare.claims import CLAIMS, PAPER_PI0, verdict
@@ -176,8 +176,8 @@ def task_differences_markdown(rows: dict, reference: str) -> list[str]:
 def claims_markdown(rows: dict, algos: list[str], reference: str) -> list[str]:
     """The paper's π0 ManiSkill table, then each claim tested on π-StepNFT − each PPO row (paired
     by seed): ``[]`` without a π-StepNFT and a PPO row among ``algos``."""
-    ours = next((a for a in [reference, *algos] if a in algos and VARIANTS[a].algo == "stepnft"), None)
-    critics = [a for a in algos if VARIANTS[a].algo == "ppo"]
+    ours = next((a for a in [reference, *algos] if a in algos and get_variant(a).algo == "stepnft"), None)
+    critics = [a for a in algos if get_variant(a).algo == "ppo"]
     if ours is None or not critics:
         return []
     columns = [*SUITE_NAMES, "ood_average"]

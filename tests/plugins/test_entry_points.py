@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from stepnft.algos.stepnft import StepNFT, StepNFTConfig
+from stepnft.algos.variants import Variant
 from stepnft.envs import SimulatorInfo
 from stepnft.envs.bandit import Bandit
 from stepnft.policies.flow import FlowPolicy, FlowPolicyConfig
@@ -53,6 +54,9 @@ class MyConfig(StepNFTConfig):
 
 class MyAlgo(StepNFT):
     config_class = MyConfig
+
+
+FAST = Variant("myalgo", "myalgo with twice the learning rate", {"lr": 2e-4})
 '''
 
 
@@ -74,6 +78,8 @@ ENTRY_POINTS = """\
     mypolicy = myplug:MyPolicy
     [stepnft.algorithms]
     myalgo = myplug:MyAlgo
+    [stepnft.variants]
+    myalgo-fast = myplug:FAST
     """
 
 
@@ -94,7 +100,13 @@ def test_a_plugin_package_registers_its_parts_under_the_old_registry_names(tmp_p
                           "assert POLICY_TYPES['mypolicy'] == 'myplug:MyPolicy' and policy_class('mypolicy').type == 'mypolicy'\n"
                           "assert config_class('myalgo')().name == 'myalgo'\n"
                           "assert list(SIMULATORS)[:4] == ['metaworld', 'bandit', 'libero', 'maniskill']\n"
-                          "assert SIMULATORS.sources['mybandit'] == 'package myplug'\n")
+                          "assert SIMULATORS.sources['mybandit'] == 'package myplug'\n"
+                          "from stepnft.algos.variants import VARIANTS, variant_config, variant_names\n"
+                          "from stepnft.algos.stepnft import StepNFTConfig\n"
+                          "assert VARIANTS['myalgo-fast'].algo == 'myalgo' and 'myalgo' in variant_names()\n"
+                          "fast = variant_config('myalgo-fast', StepNFTConfig())\n"
+                          "assert fast.name == 'myalgo' and fast.lr == 2e-4\n"
+                          "assert variant_config('myalgo', StepNFTConfig(lr=3e-4)).lr == 3e-4\n")
     assert done.returncode == 0, done.stderr[-2000:]
 
 
@@ -148,11 +160,15 @@ def test_a_run_builds_a_plugin_policy_type_from_scratch(tmp_path):
      "must name a stepnft.envs.SimulatorInfo (whose target is the simulator class), not the class MyBandit"),
     ("[stepnft.algorithms]\nghost = nowhere.at_all:Algo\n",
      "'ghost' (package myplug) cannot be imported from nowhere.at_all:Algo"),
+    ("[stepnft.variants]\nwrongv = myplug:MyAlgo\n",
+     "stepnft.variants plugin 'wrongv' of package myplug: its entry point must name a stepnft.algos.variants.Variant, "
+     "not the class MyAlgo"),
 ])
 def test_a_broken_or_conflicting_plugin_is_one_line_naming_its_package(tmp_path, entry, message):
     site = install(tmp_path / "site", entry)
-    argv = ["train", "--algo.name", "ghost", "--run-dir", tmp_path / "run"] if "ghost" in entry else \
-        ["train", "--run-dir", tmp_path / "run"]
+    argv = (["train", "--algo.name", "ghost", "--run-dir", tmp_path / "run"] if "ghost" in entry else
+            ["compare", "--algos", "stepnft,ppo", "--out", tmp_path / "run"] if "wrongv" in entry else
+            ["train", "--run-dir", tmp_path / "run"])
     done = run(site, *argv)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
     lines = done.stderr.strip().splitlines()
