@@ -519,6 +519,23 @@ def _usage() -> str:
             f"sft, train and demo-bandit read --config FILE.yaml, then flags by section: {sections}\n")
 
 
+def _interrupted(err: BaseException) -> bool:
+    """Whether ``err`` is a Ctrl-C (or SIGTERM) that other code turned into another exception:
+    ctypes reports a KeyboardInterrupt raised inside a foreign function's argument conversion as
+    ``ctypes.ArgumentError("argument 1: KeyboardInterrupt: ")`` (seen when a signal lands while
+    MuJoCo's EGL bindings load); others chain it as the cause or context."""
+    import ctypes
+
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        if isinstance(err, KeyboardInterrupt) or (isinstance(err, ctypes.ArgumentError)
+                                                  and "KeyboardInterrupt" in str(err)):
+            return True
+        err = err.__cause__ or err.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
@@ -545,6 +562,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"stepnft {command}: {str(err) or INTERRUPTED.get(command, 'interrupted')}", file=sys.stderr)
         return 130
     except Exception as err:
+        if _interrupted(err):  # Ctrl-C inside a foreign call that wrapped it (ctypes, while MuJoCo loads)
+            print(f"stepnft {command}: {INTERRUPTED.get(command, 'interrupted')}", file=sys.stderr)
+            return 130
         algos = sys.modules.get("stepnft.algos.base")  # imported by the commands that train (with torch)
         if algos is None or not isinstance(err, algos.RunDiverged):
             raise

@@ -246,3 +246,24 @@ def test_resume_refuses_a_hand_edited_config_in_one_line_and_resumes_once_restor
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before  # nothing written
     (run / "config.yaml").write_text(saved)
     assert main(["train", "--resume", str(run), "--iterations", "3"]) == 0
+
+
+@pytest.mark.parametrize("raised", [
+    __import__("ctypes").ArgumentError("argument 1: KeyboardInterrupt: "),  # a signal while MuJoCo's EGL loads
+    RuntimeError("import failed"),
+])
+def test_ctrl_c_wrapped_by_a_foreign_call_is_the_interrupted_line(capsys, monkeypatch, raised):
+    """A Ctrl-C that ctypes turned into ArgumentError (or that another error chains) ends as an
+    interruption (exit 130, one line), not a traceback."""
+    import stepnft.cli as cli
+
+    if isinstance(raised, RuntimeError):
+        raised.__context__ = KeyboardInterrupt()
+
+    def handler(argv):
+        raise raised
+
+    monkeypatch.setitem(cli.HANDLERS, "demos", handler)
+    assert main(["demos"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stepnft demos: "), err
