@@ -174,17 +174,24 @@ def test_the_ode_loop_equals_lerobots_sample_actions(tiny_folder):
 def test_the_prefix_cache_is_unchanged_by_a_flow_sde_loop(tiny_folder):
     from stepnft.sampling import sample_chunk
 
+    from stepnft.policies.lerobot.adapter import cache_tensors
+
+    def tensors(cache) -> dict:  # LeRobot 0.4: {layer: {"key_states": ...}}; 0.6: a DynamicCache
+        if isinstance(cache, dict):
+            return {(layer, k): v for layer, kv in cache.items() for k, v in kv.items()}
+        return {(layer, k): v for layer, kv in enumerate(cache_tensors(cache)) for k, v in zip("kv", kv)}
+
     policy = load(tiny_folder)
     with torch.no_grad():
         context = policy.encode(policy.processor(raw_obs(4)))
-        before = {layer: {k: (v, v.clone()) for k, v in kv.items()} for layer, kv in context.past_key_values.items()}
+        before = {name: (v, v.clone()) for name, v in tensors(context.past_key_values).items()}
         sample_chunk(lambda x, t: policy.denoise(context, x, t), (4, *policy.chunk_shape), num_steps=3,
                      noise_level=0.5, generator=torch.Generator().manual_seed(0))
-    assert context.past_key_values.keys() == before.keys()
-    for layer, kv in context.past_key_values.items():
-        for key, tensor in kv.items():
-            original, copy = before[layer][key]
-            assert tensor is original and torch.equal(tensor, copy), (layer, key)
+    after = tensors(context.past_key_values)
+    assert after.keys() == before.keys()
+    for name, tensor in after.items():
+        original, copy = before[name]
+        assert tensor is original and torch.equal(tensor, copy), name
 
 
 @needs_lerobot
@@ -403,7 +410,8 @@ def test_value_features_pool_the_prefix_hidden_states_and_add_the_state(tiny_fol
 
         (hidden, _), _ = model.vlm_with_expert.forward(
             attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
-            past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
+            past_key_values=None, inputs_embeds=[embs, None], use_cache=True,
+            **({"fill_kv_cache": True} if policy._dict_cache else {}))  # LeRobot 0.4's dict cache
         context = policy.encode(obs)
     width = model.vlm_with_expert.config.text_config.hidden_size
     assert features.shape == (VALUE_CHUNK + 5, width + 2)

@@ -72,6 +72,30 @@ def select_rows(tree: Any, rows: Tensor) -> Any:
     return tree
 
 
+def cache_tensors(cache) -> list[tuple[Tensor, Tensor]]:
+    """Every layer's ``(keys, values)`` of a transformers cache: its ``layers`` (transformers 5,
+    LeRobot 0.6) or its legacy tuples (transformers 4)."""
+    if hasattr(cache, "layers"):
+        return [(layer.keys, layer.values) for layer in cache.layers]
+    return list(cache.to_legacy_cache())
+
+
+def cache_like(cache, tensors: list[tuple[Tensor, Tensor]]):
+    """A new cache object of ``cache``'s class over ``tensors`` (per layer ``(keys, values)``): a
+    denoising step may extend or crop it in place, never the prefix it was made from."""
+    if not hasattr(cache, "layers"):
+        return type(cache).from_legacy_cache(tuple(tensors))
+    fresh = type(cache)()
+    for index, (keys, values) in enumerate(tensors):
+        fresh.update(keys, values, index)
+    return fresh
+
+
+def select_cache_rows(cache, rows: Tensor):
+    """Rows ``rows`` of every layer of a transformers cache, in a new cache object."""
+    return cache_like(cache, select_rows(cache_tensors(cache), rows))
+
+
 _CHECKPOINTED: dict[tuple[type, tuple[str, ...]], type] = {}
 
 
@@ -87,7 +111,27 @@ def checkpoint_methods(module: nn.Module, names: tuple[str, ...], enabled: bool 
 
     def wrap(original):
         def method(self, *args, **kwargs):
-            return recompute(original, self, *args, **kwargs)
+            cache = kwargs.get("past_key_values")
+            if not (torch.is_grad_enabled() and hasattr(cache, "layers")):
+                return recompute(original, self, *args, **kwargs)
+            # A transformers 5 cache (LeRobot 0.6) is extended in place by the layer: the backward
+            # pass's recomputation runs on a copy of it as it was, so it neither sees its own
+            # keys twice nor changes the cache again.
+            index = args[2] if len(args) > 2 else kwargs["layer_idx"]
+            layer = cache.layers[index] if index < len(cache.layers) else None
+            before = (layer.keys, layer.values) if layer is not None and layer.is_initialized else None
+            calls = []
+
+            def run(*a, **kw):
+                if calls:
+                    copy = type(cache)()
+                    if before is not None:
+                        copy.update(*before, index)
+                    kw = kw | {"past_key_values": copy}
+                calls.append(True)
+                return original(self, *a, **kw)
+
+            return recompute(run, *args, **kwargs)
         return method
 
     key = (plain, names)

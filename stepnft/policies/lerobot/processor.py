@@ -28,7 +28,10 @@ from lerobot.processor import NormalizerProcessorStep, PolicyProcessorPipeline  
 from lerobot.processor.converters import (batch_to_transition, create_transition,  # noqa: E402
                                           policy_action_to_transition, transition_to_batch,
                                           transition_to_policy_action)
-from lerobot.processor.core import TransitionKey  # noqa: E402
+try:  # LeRobot 0.4: lerobot.processor.core; 0.6: lerobot.processor.pipeline (both export it here)
+    from lerobot.processor import TransitionKey  # noqa: E402
+except ImportError:  # pragma: no cover - a LeRobot 0.4 without the export
+    from lerobot.processor.core import TransitionKey  # noqa: E402
 from lerobot.processor.normalize_processor import hotswap_stats  # noqa: E402
 from lerobot.utils.constants import (ACTION, OBS_STATE, POLICY_POSTPROCESSOR_DEFAULT_NAME,  # noqa: E402
                                      POLICY_PREPROCESSOR_DEFAULT_NAME)

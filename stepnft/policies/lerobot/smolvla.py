@@ -1,4 +1,4 @@
-"""SmolVLA (LeRobot 0.4) behind stepnft's policy interface.
+"""SmolVLA (LeRobot 0.4 and 0.6) behind stepnft's policy interface.
 
 ``encode`` runs SmolVLA's own ``embed_prefix`` (images, instruction tokens, state) and fills the
 VLM's key/value cache (``fill_kv_cache=True``), once per policy call; ``denoise`` is SmolVLA's
@@ -7,16 +7,23 @@ VLM's key/value cache (``fill_kv_cache=True``), once per policy call; ``denoise`
 Flow-SDE step sees the unmodified prefix. Times and velocities need no conversion (see
 ``stepnft.policies.lerobot.adapter``). The same VLM pass gives the last layer's hidden states of
 the prefix, which PPO's value head reads pooled (``value_features``).
+
+LeRobot 0.6 keeps the cache in a transformers ``DynamicCache`` instead of a dict (no
+``fill_kv_cache``: a forward without a cache fills a new one); its ``denoise_step`` appends the
+suffix in place and crops it off again. Each step here then gets a new cache object over the
+prefix's tensors, so steps and rows never share one that a step changes.
 """
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor, nn
 
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, pool_prefix, select_rows
+from stepnft.policies.lerobot.adapter import (LeRobotFlowPolicy, cache_like, cache_tensors, lazy, pool_prefix,
+                                            select_cache_rows, select_rows)
 
 from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
@@ -28,7 +35,8 @@ class SmolVLAPrefix:
     without the cache, the processed observations the whole model re-reads at every step."""
 
     pad_masks: Tensor | None = None
-    past_key_values: dict | None = None
+    past_key_values: object | None = None
+    """LeRobot 0.4: a dict of per-layer tensors; 0.6: a transformers ``DynamicCache``."""
     obs: dict[str, Tensor] | None = None
     pooled: Tensor | None = None
     """``[B, D]`` the prefix's hidden states averaged over its valid tokens (the pooled part of
@@ -47,6 +55,12 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
     def model(self) -> nn.Module:
         """SmolVLA's VLAFlowMatching."""
         return self.lerobot.model
+
+    @property
+    def _dict_cache(self) -> bool:
+        """Whether this LeRobot keeps the prefix cache in a dict it fills on request (0.4:
+        ``fill_kv_cache``) rather than in a ``DynamicCache`` (0.6)."""
+        return "fill_kv_cache" in inspect.signature(self.model.vlm_with_expert.forward).parameters
 
     def prefix_modules(self) -> list[nn.Module]:
         return [self.model.vlm_with_expert.vlm, self.model.state_proj]
@@ -105,9 +119,10 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
         """The prefix through the VLM: padding mask ``[B, L]``, key/value cache, and the last
         layer's hidden states ``[B, L, D]`` (computed by the same pass)."""
         embs, pad_masks, att_masks = self._embed_prefix(obs)
+        fill = {"fill_kv_cache": True} if self._dict_cache else {}
         (hidden, _), past_key_values = self.model.vlm_with_expert.forward(
             attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
-            past_key_values=None, inputs_embeds=[embs, None], use_cache=True, fill_kv_cache=True)
+            past_key_values=None, inputs_embeds=[embs, None], use_cache=True, **fill)
         return pad_masks, past_key_values, hidden
 
     def encode(self, obs: dict[str, Tensor]) -> SmolVLAPrefix:
@@ -126,16 +141,19 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
     def select_context(self, context: SmolVLAPrefix, rows: Tensor) -> SmolVLAPrefix:
         """The prefix of calls ``rows``: rows of its padding mask and of every layer's cached
         keys and values (without the cache: of the observations)."""
-        return replace(context, pad_masks=select_rows(context.pad_masks, rows),
-                       past_key_values=select_rows(context.past_key_values, rows), obs=select_rows(context.obs, rows),
-                       pooled=select_rows(context.pooled, rows))
+        cache = context.past_key_values
+        cache = select_rows(cache, rows) if cache is None or isinstance(cache, dict) else select_cache_rows(cache, rows)
+        return replace(context, pad_masks=select_rows(context.pad_masks, rows), past_key_values=cache,
+                       obs=select_rows(context.obs, rows), pooled=select_rows(context.pooled, rows))
 
     # --- the action expert, once per denoising step ------------------------------------------------
     def denoise(self, context: SmolVLAPrefix, x_t: Tensor, t: Tensor) -> Tensor:
         """SmolVLA's ``denoise_step`` at ``x_t`` ``[B, chunk_size, max_action_dim]``, ``t`` ``[B]``."""
         if context.obs is None:
-            return self.model.denoise_step(prefix_pad_masks=context.pad_masks, past_key_values=context.past_key_values,
-                                           x_t=x_t, timestep=t)
+            cache = context.past_key_values
+            if not isinstance(cache, dict):  # LeRobot 0.6's DynamicCache: a step extends the object it gets
+                cache = cache_like(cache, cache_tensors(cache))
+            return self.model.denoise_step(prefix_pad_masks=context.pad_masks, past_key_values=cache, x_t=x_t, timestep=t)
         return self._joint_velocity(context.obs, x_t, t)
 
     def _joint_velocity(self, obs: dict[str, Tensor], x_t: Tensor, t: Tensor) -> Tensor:
@@ -147,6 +165,7 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
         att_masks = torch.cat([prefix_att, suffix_att], dim=1)
         (_, suffix_out), _ = self.model.vlm_with_expert.forward(
             attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
-            past_key_values=None, inputs_embeds=[prefix_embs, suffix_embs], use_cache=False, fill_kv_cache=False)
+            past_key_values=None, inputs_embeds=[prefix_embs, suffix_embs], use_cache=False,
+            **({"fill_kv_cache": False} if self._dict_cache else {}))
         suffix_out = suffix_out[:, -self.lerobot.config.chunk_size:].to(dtype=torch.float32)
         return self.model.action_out_proj(suffix_out)
