@@ -377,7 +377,7 @@ class RayCollector(Collector):
             try:
                 return ray.get(getattr(self.workers[k].actor, method).remote(*args),
                                timeout=max(deadline - time.monotonic(), 0.01))
-            except ray.exceptions.ActorUnavailableError:
+            except (ray.exceptions.ActorUnavailableError, ray.exceptions.GetTimeoutError):
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"Ray rollout worker {k} did not come back within ray.timeout_s="
                                        f"{self.cfg.timeout_s}s") from None
