@@ -73,7 +73,11 @@ def test_the_installed_example_fine_tunes_resumes_and_evaluates(site, tmp_path):
 
 def test_the_example_simulator_keeps_the_chunk_env_contract(site, monkeypatch):
     monkeypatch.syspath_prepend(str(site))
-    from stepnft_example.sim import Reacher, ReacherExpert
+    from stepnft.envs.rendering import check_gl_platform
+    from stepnft_example.sim import INFO, Reacher, ReacherExpert
+
+    assert INFO.opengl
+    check_gl_platform(renders=False)  # as stepnft.envs.get_simulator does first for such a simulator
 
     sim = Reacher()
     env = sim.make_env("reach", n_exec=4, max_episode_steps=50, seed=3)

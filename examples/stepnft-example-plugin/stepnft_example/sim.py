@@ -21,9 +21,11 @@ import numpy as np
 from stepnft.envs import SimulatorInfo
 from stepnft.envs.base import ChunkEpisode, Expert, Simulator, checked_chunk
 
-INFO = SimulatorInfo("stepnft_example.sim:Reacher", max_episode_steps=200, default_tasks=("reach",), reward="shaped")
-"""What stepnft checks before building anything: the longest episode, the default task, and
-that the env's own reward measures progress (Reacher's is minus the distance)."""
+INFO = SimulatorInfo("stepnft_example.sim:Reacher", max_episode_steps=200, default_tasks=("reach",), reward="shaped",
+                     opengl=True)
+"""What stepnft checks before building anything: the longest episode, the default task, that
+the env's own reward measures progress (Reacher's is minus the distance), and that it renders
+through MuJoCo's OpenGL (stepnft then sets and checks ``MUJOCO_GL`` before MuJoCo is imported)."""
 
 SUCCESS_RADIUS = 0.01
 """The fingertip within this distance (m) of the target is a success (the fingertip's own radius)."""
