@@ -204,17 +204,13 @@ def _option(argv: list[str], flag: str) -> str | None:
 def _take_option(argv: list[str], flag: str) -> tuple[str | None, list[str]]:
     """The value of option ``flag`` in ``argv`` (``--flag V`` or ``--flag=V``; the last one given)
     and ``argv`` without it."""
-    value, rest, args = None, [], iter(argv)
-    for arg in args:
-        if arg == flag:
-            value = next(args, None)
-            if value is None:
-                raise UsageError(f"{flag} needs a value")
-        elif arg.startswith(flag + "="):
-            value = arg.partition("=")[2]
-        else:
-            rest.append(arg)
-    return value, rest
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
+    parser.add_argument(flag, dest="value")
+    try:
+        known, rest = parser.parse_known_args(argv)
+    except argparse.ArgumentError:
+        raise UsageError(f"{flag} needs a value") from None
+    return known.value, rest
 
 
 def _with_policy_type(base, type_name: str | None):

@@ -13,12 +13,11 @@ A package adds one line per part to its ``pyproject.toml``, and stepnft needs no
 
 The registries (``stepnft.envs.SIMULATORS``, ``stepnft.policies.base.POLICY_TYPES``,
 ``stepnft.algos.base.ALGORITHMS``, ``stepnft.algos.variants.VARIANTS``) keep their names and
-their values' types; each is a
-:class:`PluginRegistry` that merges its group's entry points on its first lookup, in every
-process that looks (Ray workers and torchrun ranks look names up too, so they see the same
-plugins). Policies and algorithms stay lazy (``module:Class`` strings, imported on first use); a
-simulator's or a variant's entry point is loaded at once, since the config checks its facts (episode length,
-tasks) before anything is built. A plugin whose name is taken, or whose simulator entry point
+their values' types; each is a :class:`PluginRegistry` that merges its group's entry points on
+its first lookup, in every process that looks (Ray workers and torchrun ranks look names up too,
+so they see the same plugins). Policies and algorithms stay lazy (``module:Class`` strings,
+imported on first use); a simulator's or a variant's entry point is loaded at once, since the
+config checks its facts (episode length, tasks; a variant's algorithm) before anything is built. A plugin whose name is taken, or whose simulator entry point
 fails to load, is a :class:`PluginError`: one line naming its package.
 """
 

@@ -104,11 +104,12 @@ def check_config_matches(ckpt: dict, settings: dict, run_dir: Path, defaults: di
             out |= leaves(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value}
         return out
 
-    old, new = leaves(recorded), leaves(json.loads(json.dumps(settings)))
-    default = leaves(json.loads(json.dumps(defaults))) if defaults else {}
-    changed = sorted(k for k in old.keys() | new.keys() if old.get(k, default.get(k)) != new.get(k))
+    # What the checkpoint does not record, it was written under at its default.
+    old = (leaves(json.loads(json.dumps(defaults))) if defaults else {}) | leaves(recorded)
+    new = leaves(json.loads(json.dumps(settings)))
+    changed = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if changed:
-        shown = ", ".join(f"{k} {old.get(k, default.get(k))!r} -> {new.get(k)!r}" for k in changed[:4]) + (" ..." if len(changed) > 4 else "")
+        shown = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:4]) + (" ..." if len(changed) > 4 else "")
         raise ValueError(f"{run_dir}/config.yaml was edited after checkpoint {ckpt['path'].name} was written ({shown}): "
                          f"restore it to resume, or start a new run from the edited config with `stepnft train --config "
                          f"{run_dir}/config.yaml --run-dir NEW_DIR`")

@@ -10,7 +10,7 @@ them; ``cameras`` is optional (none: a state policy).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from typing import ClassVar
 
 from stepnft.settings import Settings
@@ -45,5 +45,5 @@ class PolicyConfig(Settings):
 
 def missing_run_fields(cls: type) -> list[str]:
     """The :data:`RUN_FIELDS` that config class ``cls`` does not declare."""
-    declared = {f.name for f in fields(cls)} if hasattr(cls, "__dataclass_fields__") else set()
+    declared = {f.name for f in fields(cls)} if is_dataclass(cls) else set()
     return [name for name in RUN_FIELDS if name not in declared]

@@ -21,7 +21,8 @@ import torch
 from torch import Tensor, nn
 
 from stepnft.policies.base import PolicyUnavailable
-from stepnft.policies.lerobot.adapter import LeRobotFlowPolicy, lazy, pool_prefix, select_rows
+from stepnft.policies.lerobot.adapter import (LeRobotFlowPolicy, cache_like, cache_tensors, lazy, pool_prefix,
+                                            select_cache_rows, select_rows)
 
 from lerobot.policies.pi0.modeling_pi0 import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS  # noqa: E402
@@ -130,20 +131,15 @@ class PI0Adapter(LeRobotFlowPolicy):
         pad_masks, _, hidden = self._run_prefix(obs)
         return hidden, pad_masks
 
-    def _fresh_cache(self, cache):
-        """A new DynamicCache over the same prefix tensors: the step may extend it, not the prefix."""
-        return type(cache).from_legacy_cache(cache.to_legacy_cache())
-
     def select_context(self, context: PiPrefix, rows: Tensor) -> PiPrefix:
         """The prefix of calls ``rows``: rows of its mask, of its cache's key/value tensors (in a
         new cache object) and of the state."""
-        cache = context.past_key_values
-        return PiPrefix(select_rows(context.pad_masks, rows),
-                        type(cache).from_legacy_cache(select_rows(cache.to_legacy_cache(), rows)),
+        return PiPrefix(select_rows(context.pad_masks, rows), select_cache_rows(context.past_key_values, rows),
                         select_rows(context.state, rows), pooled=select_rows(context.pooled, rows))
 
     def denoise(self, context: PiPrefix, x_t: Tensor, t: Tensor) -> Tensor:
-        cache = self._fresh_cache(context.past_key_values)
+        # A new cache object over the same prefix tensors: the step may extend it, not the prefix.
+        cache = cache_like(context.past_key_values, cache_tensors(context.past_key_values))
         if self.state_in_suffix:
             return self.model.denoise_step(state=context.state, prefix_pad_masks=context.pad_masks,
                                            past_key_values=cache, x_t=x_t, timestep=t)

@@ -16,6 +16,7 @@ prefix's tensors, so steps and rows never share one that a step changes.
 
 from __future__ import annotations
 
+import functools
 import inspect
 from dataclasses import dataclass, replace
 
@@ -27,6 +28,13 @@ from stepnft.policies.lerobot.adapter import (LeRobotFlowPolicy, cache_like, cac
 
 from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks  # noqa: E402
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS, OBS_STATE  # noqa: E402
+
+
+@functools.lru_cache(maxsize=None)
+def _fills_on_request(model_class: type) -> bool:
+    """Whether ``model_class.forward`` takes ``fill_kv_cache`` (read once per class: it is asked
+    at every policy call and, without the prefix cache, every denoising step)."""
+    return "fill_kv_cache" in inspect.signature(model_class.forward).parameters
 
 
 @dataclass
@@ -60,7 +68,7 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
     def _dict_cache(self) -> bool:
         """Whether this LeRobot keeps the prefix cache in a dict it fills on request (0.4:
         ``fill_kv_cache``) rather than in a ``DynamicCache`` (0.6)."""
-        return "fill_kv_cache" in inspect.signature(self.model.vlm_with_expert.forward).parameters
+        return _fills_on_request(type(self.model.vlm_with_expert))
 
     def prefix_modules(self) -> list[nn.Module]:
         return [self.model.vlm_with_expert.vlm, self.model.state_proj]
