@@ -1,11 +1,12 @@
-"""What an update costs at SmolVLA's real size: seconds per update sample and peak memory for
+"""What an update costs at a VLA's real size (SmolVLA, π0, π0.5): seconds per update sample and peak memory for
 π-StepNFT, PPO (Flow-SDE, its value head on the VLA's pooled prefix) and GRPO at an equal batch,
 for each precision (and with gradient checkpointing), plus policy calls/s with and without the
 prefix cache.
 
-The model is the full-size SmolVLA architecture (SmolVLM2-500M backbone, 16 language layers,
-~450 M parameters) built offline from a local configuration with random weights
-(``stepnft.policies.lerobot.tiny``); ``--size tiny`` is a quick check. Every algorithm gets the
+The model (``--model``) is the full-size architecture built offline from a local configuration
+with random weights (``stepnft.policies.lerobot.tiny``): SmolVLA (SmolVLM2-500M backbone, 16
+language layers, ~450 M parameters), π0 / π0.5 (PaliGemma with gemma_2b and a gemma_300m
+action expert, ~3.5 B; LeRobot 0.6); ``--size tiny`` is a quick check. Every algorithm gets the
 same batch of policy calls (one episode per call; GRPO's groups of 2 share a reset seed) and does
 one optimizer step over all of it (``minibatch_size`` = every recorded step): π-StepNFT records
 one denoising step per call, PPO and GRPO all K (their likelihood sums over the chain), so an
@@ -20,6 +21,7 @@ With ``--out`` the table is written after every row, and rerunning the command k
 has (delete the folder to measure again).
 
     .venv-lerobot/bin/python benchmarks/vla_compute.py --out benchmarks/results/vla_compute
+    .venv-lerobot/bin/python benchmarks/vla_compute.py --model pi0 --out benchmarks/results/vla_compute_pi0
     .venv-lerobot/bin/python benchmarks/vla_compute.py --size tiny --reps 1        # a quick check
     python benchmarks/vla_compute.py --device cuda --calls 16 --out OUT            # on a GPU
 """
@@ -44,8 +46,9 @@ ALGOS = ("stepnft", "ppo", "grpo")
 CASES = [(algo, "fp32", False) for algo in ALGOS] + [(algo, "bf16", False) for algo in ALGOS] + \
         [(algo, "bf16", True) for algo in ALGOS]
 """(algorithm, precision, gradient checkpointing) of the cost table, in its row order."""
-CHUNK = {"tiny": (4, 4), "smolvla": (50, 10)}
-"""Chunk size and denoising steps K per size (SmolVLA's defaults at full size)."""
+CHUNK = {"tiny": (4, 4), "full": (50, 10)}
+"""Chunk size and denoising steps K per size (SmolVLA's and π0's defaults at full size)."""
+MODELS = ("smolvla", "pi0", "pi05")
 
 
 def raw_obs(calls: int, side: int, seed: int = 0) -> dict:
@@ -67,13 +70,13 @@ def reset_peak() -> None:
     Path("/proc/self/clear_refs").write_text("5")
 
 
-def build(size: str, device: str, tmp: Path):
-    from stepnft.policies.lerobot.tiny import SIZES, NewSmolVLA, build_smolvla
+def build(model: str, size: str, device: str, tmp: Path):
+    from stepnft.policies.lerobot.tiny import PI_SIZES, SIZES, NewVLA, build_vla
 
     chunk, steps = CHUNK[size]
-    side = SIZES[size]["vision"]["image_size"]
-    policy = build_smolvla(NewSmolVLA(out="", size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
-                                      image_size=side), tmp / size)
+    side = SIZES["smolvla" if size == "full" else size]["vision"]["image_size"] if model == "smolvla" else PI_SIZES[size][2]
+    policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
+                              image_size=side), tmp / size)
     policy.processor.bind_instructions(["open the drawer"])
     return policy.to(device), side
 
@@ -122,7 +125,7 @@ def one(args) -> dict:
     torch.set_num_threads(args.threads)
     cuda = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        policy, side = build(args.size, args.device, Path(tmp))
+        policy, side = build(args.model, args.size, args.device, Path(tmp))
     policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
     out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
            "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
@@ -205,7 +208,9 @@ def ratios(rows: list[dict]) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--size", choices=list(CHUNK), default="smolvla")
+    parser.add_argument("--model", choices=MODELS, default="smolvla", help="LeRobot model (π0 / π0.5 need LeRobot 0.6)")
+    parser.add_argument("--size", choices=[*CHUNK, "smolvla"], default="full",
+                        help="full (the model's real architecture) or tiny; smolvla: full, by its old name")
     parser.add_argument("--calls", type=int, default=2, help="policy calls in the update batch (equal for all algorithms)")
     parser.add_argument("--sample-calls", type=int, default=1, help="batch of the timed policy calls")
     parser.add_argument("--reps", type=int, default=1, help="timed updates after one warm-up")
@@ -223,11 +228,12 @@ def main() -> None:
     if Path(stepnft.__file__).resolve().parents[1] != provenance.ROOT:
         parser.error(f"stepnft is imported from {Path(stepnft.__file__).parent}, not from this checkout: "
                      f"run with PYTHONPATH={provenance.ROOT}")
+    args.size = "full" if args.size == "smolvla" else args.size
     out = Path(args.out) if args.out else None
     done_rows = []
     if out is not None and (out / "compute.json").is_file():  # an interrupted table: keep its rows
         done_rows = [r for r in json.loads((out / "compute.json").read_text())["rows"] if "error" not in r]
-    results = {"commit": provenance.commit(), "command": provenance.command(), "packages": provenance.packages(), "cpu": provenance.cpu(), "size": args.size, "calls": args.calls,
+    results = {"commit": provenance.commit(), "command": provenance.command(), "packages": provenance.packages(), "cpu": provenance.cpu(), "model": args.model, "size": args.size, "calls": args.calls,
                "device": args.device, "torch": torch.__version__, "threads": args.threads,
                "machine": platform.processor() or platform.machine(), "load_average_at_start": list(os.getloadavg()),
                "rows": []}
@@ -237,7 +243,7 @@ def main() -> None:
         if kept:
             results["rows"].append(kept[0])
             continue
-        command = [sys.executable, __file__, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
+        command = [sys.executable, __file__, "--model", args.model, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
                    "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
                    "--one", algo, precision, "1" if checkpointing else "0"]
         done = subprocess.run(command, capture_output=True, text=True)

@@ -1,7 +1,8 @@
-"""A tiny SmolVLA fine-tuned on MetaWorld camera observations from the CLI: demonstrations with
-cameras, SFT of a new tiny SmolVLA (`stepnft sft --init`), then π-StepNFT (`stepnft train
---init RUN/policy`), beside the MLP flow policy (state only) on the same tasks, the same
-demonstrations and the same RL budget.
+"""Tiny LeRobot VLAs (SmolVLA, π0, π0.5) fine-tuned on MetaWorld camera observations from the
+CLI: demonstrations with cameras, SFT of a new tiny VLA of each model (`stepnft sft --init`), then
+π-StepNFT (`stepnft train --init RUN/policy`), beside the MLP flow policy (state only) on the same
+tasks, the same demonstrations and the same RL budget. A pipeline check: random, tiny VLMs, not
+what a pretrained model reaches.
 
 Run in the LeRobot environment (docs/lerobot.md):
 
@@ -23,6 +24,9 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import provenance  # noqa: E402
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 
@@ -40,12 +44,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="benchmarks/results/vla")
     parser.add_argument("--tasks", nargs="+", default=["reach-v3", "drawer-open-v3", "door-open-v3"])
+    parser.add_argument("--models", nargs="+", default=["smolvla", "pi0", "pi05"], choices=["smolvla", "pi0", "pi05"],
+                        help="LeRobot models to build tiny and fine-tune (π0 / π0.5 need LeRobot 0.6)")
     parser.add_argument("--camera", default="corner", help="MetaWorld camera (upright view)")
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--demos", type=int, default=5, help="demonstrations per task")
-    parser.add_argument("--sft-steps", type=int, default=1000, help="SmolVLA SFT steps (the MLP takes 3000)")
+    parser.add_argument("--sft-steps", type=int, default=1000, help="VLA SFT steps (the MLP takes 3000)")
     parser.add_argument("--sft-train", default="expert+state", choices=["expert", "expert+state", "vlm"],
-                        help="trained parameters of the SmolVLA, in SFT and RL (LeRobot's fine-tuning default: "
+                        help="trained parameters of each VLA, in SFT and RL (LeRobot's fine-tuning default: "
                              "expert+state; a new tiny model's state projection is random, so SFT should train it)")
     parser.add_argument("--iterations", type=int, default=8)
     parser.add_argument("--episodes", type=int, default=12, help="episodes per RL iteration")
@@ -74,26 +80,30 @@ def main() -> None:
 
     # Demonstrations with the camera's views (the MLP reads only their states).
     step("demos", out / "demos" / "manifest.json", ["demos", *env, *cameras, *demos])
-    # A new tiny SmolVLA on an offline VLM configuration, then SFT on the camera demonstrations
-    # (the `train` run evaluates it, as its starting point).
-    smolvla = out / "tiny_smolvla"
-    step("smolvla_new", smolvla / "config.json",
-         ["new", "--out", smolvla, "--size", "tiny", "--state-dim", 39, "--action-dim", 4, "--chunk-size", 4,
-          "--n-exec", 4, "--num-steps", 4, "--cameras", args.camera, "--image-size", args.image_size,
-          "--train", args.sft_train, "--seed", args.seed], module="stepnft.policies.lerobot")
-    step("smolvla_sft", out / "smolvla_sft" / "summary.json",
-         ["sft", "--init", smolvla, "--run-dir", out / "smolvla_sft", *env, *cameras, *demos, *common,
-          "--sft.steps", args.sft_steps, "--sft.batch-size", 64, "--sft.lr", 1e-3, "--sft.time-law", "beta",
-          "--eval.episodes", 0])
-    runs = {f"smolvla_it{args.iterations}": ["--init", out / "smolvla_sft" / "policy", *cameras],
-            f"mlp_it{args.iterations}": ["--sft.steps", 3000]}
+    # A new tiny VLA of each model on an offline configuration, then SFT on the camera
+    # demonstrations (the `train` run evaluates it, as its starting point).
+    runs = {}
+    for model in args.models:
+        folder = out / f"tiny_{model}"
+        step(f"{model}_new", folder / "config.json",
+             ["new", "--out", folder, "--model", model, "--size", "tiny", "--state-dim", 39, "--action-dim", 4,
+              "--chunk-size", 4, "--n-exec", 4, "--num-steps", 4, "--cameras", args.camera,
+              "--image-size", args.image_size, "--train", args.sft_train, "--seed", args.seed],
+             module="stepnft.policies.lerobot")
+        step(f"{model}_sft", out / f"{model}_sft" / "summary.json",
+             ["sft", "--init", folder, "--run-dir", out / f"{model}_sft", *env, *cameras, *demos, *common,
+              "--sft.steps", args.sft_steps, "--sft.batch-size", 64, "--sft.lr", 1e-3, "--sft.time-law", "beta",
+              "--eval.episodes", 0])
+        runs[f"{model}_it{args.iterations}"] = ["--init", out / f"{model}_sft" / "policy", *cameras]
+    runs[f"mlp_it{args.iterations}"] = ["--sft.steps", 3000]
     for name, flags in runs.items():
         step(name, out / name / "summary.json", ["train", "--run-dir", out / name, *flags, *env, *demos, *common, *rl])
 
     report_path = out / "report.json"
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
     report.setdefault("cpu_s", {}).update(cpu)
-    report["args"] = vars(args)
+    report |= {"args": vars(args), "commit": provenance.commit(), "command": provenance.command(),
+               "packages": provenance.packages((*provenance.NUMERIC_PACKAGES, "lerobot", "transformers"))}
     for name in runs:
         summary = json.loads((out / name / "summary.json").read_text())
         report[name] = {t: {k: {key: summary["tasks"][t][k][key] for key in ("success", "ci95")}

@@ -6,11 +6,13 @@
 #   --libero    adds the LIBERO extra (docs/libero.md; 622 MB of assets), as STEPNFT_EXTRAS=...,libero does.
 #   --maniskill adds the ManiSkill3 extra (docs/maniskill.md) and, when root with apt, a Vulkan driver:
 #               SAPIEN needs one even without cameras; on Debian 12 Mesa's lavapipe 25 from bookworm-backports.
-#   --lerobot   also the optional LeRobot environment .venv-lerobot (SmolVLA, docs/lerobot.md):
-#               torch 2.10.0 + torchvision 0.25.0 + lerobot[smolvla] 0.4.4, pinned by
-#               constraints-lerobot.txt, with stepnft installed editable; about 2 minutes and
-#               8.4 GB (LeRobot's policies import torchvision, which has no wheel for .venv's
-#               CPU torch).
+#   --lerobot   also the optional LeRobot environment .venv-lerobot (SmolVLA, π0, π0.5; docs/lerobot.md):
+#               LeRobot 0.6 on Python 3.12 (LeRobot 0.6 needs >= 3.12: python3.12 on PATH, a
+#               pyenv 3.12, or LEROBOT_PYTHON=/path/to/python3.12), torch 2.11.0 + torchvision
+#               0.26.0 + lerobot[pi,smolvla] 0.6.1, pinned by constraints-lerobot.txt, with stepnft
+#               installed editable; about 2 minutes and 5.7 GB (LeRobot's policies import
+#               torchvision, which has no wheel for .venv's CPU torch). An environment made for
+#               an older LeRobot on an older Python is made anew.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -77,20 +79,41 @@ if [ "$extras" != "$installed" ]; then
 fi
 
 if [ "$LEROBOT" = 1 ]; then
-  [ -x .venv-lerobot/bin/python ] || "$PYTHON" -m venv .venv-lerobot
+  # LeRobot 0.6 needs Python >= 3.12: LEROBOT_PYTHON, else python3.12 / python3.13 on PATH, else pyenv's newest 3.12.
+  is_312() { "$1" -c 'import sys; raise SystemExit(sys.version_info < (3, 12))' 2>/dev/null; }
+  LEROBOT_PY=${LEROBOT_PYTHON:-}
+  if [ -z "$LEROBOT_PY" ]; then
+    for candidate in python3.12 python3.13 "$PYTHON"; do
+      if command -v "$candidate" >/dev/null 2>&1 && is_312 "$(command -v "$candidate")"; then
+        LEROBOT_PY=$(command -v "$candidate"); break
+      fi
+    done
+  fi
+  if [ -z "$LEROBOT_PY" ] && command -v pyenv >/dev/null 2>&1; then
+    version=$(pyenv versions --bare 2>/dev/null | grep -E '^3\.12\.[0-9]+$' | sort -V | tail -n 1 || true)
+    [ -n "$version" ] && LEROBOT_PY="$(pyenv root)/versions/$version/bin/python"
+  fi
+  if [ -z "$LEROBOT_PY" ] || ! is_312 "$LEROBOT_PY"; then
+    echo "bootstrap.sh: the LeRobot environment (LeRobot 0.6) needs Python >= 3.12 and none was found${LEROBOT_PY:+ ($LEROBOT_PY is older)}: install one (pyenv install 3.12, or your system's python3.12) or name it with LEROBOT_PYTHON=/path/to/python3.12" >&2
+    exit 2
+  fi
+  if [ -x .venv-lerobot/bin/python ] && ! is_312 .venv-lerobot/bin/python; then
+    rm -rf .venv-lerobot  # made for LeRobot 0.4 on an older Python
+  fi
+  [ -x .venv-lerobot/bin/python ] || "$LEROBOT_PY" -m venv .venv-lerobot
   stamp=.venv-lerobot/.stepnft-installed
   want=$(cat pyproject.toml constraints-lerobot.txt | sha1sum | cut -d' ' -f1)
   if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-    # LeRobot's torch is PyPI's CUDA build (its nvidia libraries are most of the 9 GB): say so
+    # LeRobot's torch is PyPI's CUDA build (its nvidia libraries are most of the 5.7 GB): say so
     # before pip fills the disk halfway through.
     free_gb=$(df -Pk . | awk 'NR == 2 { print int($4 / 1048576) }')
-    if [ ! -f "$stamp" ] && [ "$free_gb" -lt 10 ]; then
-      echo "bootstrap.sh: the LeRobot environment needs about 10 GB free (9 GB installed plus downloads), $free_gb GB are free here; free some disk (scripts/run-tests.sh skips this part with STEPNFT_LEROBOT_TESTS=0)" >&2
+    if [ ! -f "$stamp" ] && [ "$free_gb" -lt 8 ]; then
+      echo "bootstrap.sh: the LeRobot environment needs about 8 GB free (5.7 GB installed plus downloads), $free_gb GB are free here; free some disk (scripts/run-tests.sh skips this part with STEPNFT_LEROBOT_TESTS=0)" >&2
       exit 2
     fi
     .venv-lerobot/bin/python -m pip install -q --upgrade pip
     .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "torch" "torchvision"
-    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[smolvla]" "peft" -e ".[test]"
+    .venv-lerobot/bin/python -m pip install -q -c constraints-lerobot.txt "lerobot[pi,smolvla]" "peft" -e ".[test]"
     echo "$want" > "$stamp"
   fi
 fi

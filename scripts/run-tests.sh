@@ -5,7 +5,7 @@
 # The ManiSkill tests need the maniskill extra and a Vulkan driver (bootstrap.sh installs Mesa's
 # as root with apt): STEPNFT_EXTRAS=test,video,ray,maniskill bash scripts/run-tests.sh
 # Extra arguments go to pytest. Without arguments it then also runs the LeRobot adapter's tests
-# in the optional LeRobot environment (.venv-lerobot: about 2 minutes and 8.4 GB the first
+# in the optional LeRobot environment (.venv-lerobot, LeRobot 0.6 on Python 3.12: about 2 minutes and 5.7 GB the first
 # time, docs/lerobot.md); STEPNFT_LEROBOT_TESTS=0 skips that part.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,9 +1,10 @@
-"""LeRobot SmolVLA behind stepnft's policy interface (stepnft.policies.lerobot).
+"""LeRobot's flow VLAs (SmolVLA, π0, π0.5) behind stepnft's policy interface (stepnft.policies.lerobot).
 
 Runs in the LeRobot environment (`bash scripts/bootstrap.sh --lerobot`, then
-`.venv-lerobot/bin/python -m pytest tests/policies/test_lerobot.py`); elsewhere the SmolVLA tests
+`.venv-lerobot/bin/python -m pytest tests/policies/test_lerobot.py`); elsewhere the model tests
 skip with the reason, and the tests that need no LeRobot check that stepnft does not import it
-and that a SmolVLA folder gives one line saying what is missing.
+and that a SmolVLA folder gives one line saying what is missing. Every model test runs on a tiny
+SmolVLA, π0 and π0.5 (the ``tiny_folder`` fixture; π0 / π0.5 where LeRobot builds them, 0.6).
 """
 
 import importlib.util
@@ -22,6 +23,24 @@ HAVE_LEROBOT = importlib.util.find_spec("lerobot") is not None
 needs_lerobot = pytest.mark.skipif(not HAVE_LEROBOT, reason="LeRobot is not installed: these tests run in the LeRobot "
                                    "environment (bash scripts/bootstrap.sh --lerobot; scripts/run-tests.sh runs them)")
 IMAGE = 16
+MODELS = ("smolvla", "pi0", "pi05")
+PARTS = {
+    # Where each model's parts live in its parameter names; whether its state projection trains
+    # under a scope (π0's is in the action expert's suffix; π0.5 has none: its state is in the prompt).
+    "smolvla": dict(expert="lm_expert", vlm=".vlm.", lm=".vlm.model.text_model.", vision="vision_model",
+                    state_trained=lambda scope: scope != "expert"),
+    "pi0": dict(expert="gemma_expert", vlm=".paligemma.", lm=".language_model.", vision="vision_tower",
+                state_trained=lambda scope: True),
+    "pi05": dict(expert="gemma_expert", vlm=".paligemma.", lm=".language_model.", vision="vision_tower",
+                 state_trained=lambda scope: False),
+}
+
+
+def vlm_width(policy) -> int:
+    """The width of the VLM's language model (the pooled prefix features)."""
+    if policy.type == "smolvla":
+        return policy.lerobot.model.vlm_with_expert.config.text_config.hidden_size
+    return policy.language_model.config.hidden_size
 
 
 def test_importing_stepnft_does_not_import_lerobot():
@@ -127,16 +146,25 @@ def raw_obs(batch: int, seed: int = 0) -> dict:
     return {"state": state, "task": torch.zeros(batch, dtype=torch.int64), "image": image}
 
 
-@pytest.fixture(scope="module")
-def tiny_folder(tmp_path_factory):
-    """A new tiny SmolVLA for the bandit (2-d state and actions, chunks of 2, 3 denoising steps)."""
+def skip_without(model: str) -> None:
     if not HAVE_LEROBOT:
         pytest.skip("LeRobot is not installed")
-    from stepnft.policies.lerobot.tiny import NewSmolVLA, new_smolvla
+    if model != "smolvla":
+        from stepnft.policies.lerobot.pi0 import needs_patched_transformers
 
-    folder = tmp_path_factory.mktemp("smolvla") / "policy"
-    new_smolvla(NewSmolVLA(out=str(folder), state_dim=2, action_dim=2, chunk_size=2, n_exec=2, num_steps=3,
-                           cameras=["synthetic"], image_size=IMAGE))
+        if needs_patched_transformers():
+            pytest.skip("π0 / π0.5 need LeRobot 0.6 (this LeRobot builds them only on its patched transformers)")
+
+
+@pytest.fixture(scope="module", params=MODELS)
+def tiny_folder(request, tmp_path_factory):
+    """A new tiny VLA of each model for the bandit (2-d state and actions, chunks of 2, 3 denoising steps)."""
+    skip_without(request.param)
+    from stepnft.policies.lerobot.tiny import NewVLA, new_vla
+
+    folder = tmp_path_factory.mktemp(request.param) / "policy"
+    new_vla(NewVLA(out=str(folder), model=request.param, state_dim=2, action_dim=2, chunk_size=2, n_exec=2,
+                   num_steps=3, cameras=["synthetic"], image_size=IMAGE))
     return folder
 
 
@@ -158,6 +186,11 @@ def test_the_ode_loop_equals_lerobots_sample_actions(tiny_folder):
     sample = policy.sample(obs, noise_level=0.0, generator=torch.Generator().manual_seed(3))
     noise = torch.randn((5, *policy.chunk_shape), generator=torch.Generator().manual_seed(3))
     lerobot = policy.lerobot
+    if policy.type != "smolvla":  # π0 / π0.5: LeRobot's predict path (its sample_actions) on the same noise
+        with torch.no_grad():
+            reference = lerobot.predict_action_chunk(obs, noise=noise)
+        torch.testing.assert_close(sample.actions, reference, rtol=0, atol=1e-6)
+        return
     images, img_masks = lerobot.prepare_images(obs)
     with torch.no_grad():
         reference = lerobot.model.sample_actions(images, img_masks, obs["observation.language.tokens"],
@@ -219,6 +252,10 @@ def test_flow_sde_steps_match_stepnfts_sampler(tiny_folder):
 
 @needs_lerobot
 def test_cached_and_joint_velocities_agree(tiny_folder):
+    if load(tiny_folder).type != "smolvla":
+        with pytest.raises(ValueError, match="prefix_cache=false is SmolVLA's joint pass"):
+            load(tiny_folder, prefix_cache=False)
+        return
     cached, joint = load(tiny_folder), load(tiny_folder, prefix_cache=False)
     obs = cached.processor(raw_obs(3))
     x, t = torch.randn(3, *cached.chunk_shape), torch.tensor([1.0, 0.5, 0.2])
@@ -251,9 +288,11 @@ def test_a_stepnft_update_changes_only_the_trained_parameters(tiny_folder, scope
     from stepnft.ema import make_ema_copy
 
     policy = load(tiny_folder, train=scope)
-    assert policy.prefix_trainable == (scope != "expert")
+    part = PARTS[policy.type]
+    # π0's and π0.5's prefix is the VLM alone (π0's state projection is in the expert's suffix)
+    assert policy.prefix_trainable == (scope != "expert" and policy.type == "smolvla")
     ema = make_ema_copy(policy)  # the rollout copy shares the frozen VLM instead of copying it
-    assert ema.lerobot.model.vlm_with_expert.vlm is policy.lerobot.model.vlm_with_expert.vlm
+    assert ema.prefix_modules()[0] is policy.prefix_modules()[0]
     batch = rollout_batch(ema)
     before = {n: p.detach().clone() for n, p in policy.named_parameters()}
     cfg = StepNFTConfig(lr=1e-3, minibatch_size=16, update_epochs=1, max_drift=None, label_balance="none",
@@ -264,13 +303,13 @@ def test_a_stepnft_update_changes_only_the_trained_parameters(tiny_folder, scope
     changed = {n for n, p in policy.named_parameters() if not torch.equal(p, before[n])}
     trained = {n for n, p in policy.named_parameters() if p.requires_grad}
     assert changed and changed <= trained
-    assert any("action_out_proj" in n for n in changed) and any("lm_expert" in n for n in changed)
-    assert not any(".vlm." in n for n in changed)
-    assert any("state_proj" in n for n in changed) == (scope == "expert+state")
+    assert any("action_out_proj" in n for n in changed) and any(part["expert"] in n for n in changed)
+    assert not any(part["vlm"] in n for n in changed)
+    assert any("state_proj" in n for n in changed) == part["state_trained"](scope)
 
 
 def count_prefixes(policy, monkeypatch) -> list[int]:
-    """Prefixes SmolVLA embeds (images through the vision encoder, into the VLM) per call of its
+    """Prefixes the model embeds (images through the vision encoder, into the VLM) per call of its
     ``_embed_prefix``, appended to the returned list."""
     rows, embed = [], policy._embed_prefix
 
@@ -300,6 +339,7 @@ def test_the_update_encodes_each_calls_prefix_once_with_the_per_step_losses(tiny
     runs = {}
     for share in (True, False):
         policy = load(tiny_folder, train=scope).train()
+        vlm = PARTS[policy.type]["vlm"]
         assert policy.shares_prefix_in_update and policy.prefix_trainable == (scope == "vlm")
         prefixes = count_prefixes(policy, monkeypatch)
         if not share:  # the per-step path (one prefix per recorded step) on the same minibatches
@@ -316,7 +356,7 @@ def test_the_update_encodes_each_calls_prefix_once_with_the_per_step_losses(tiny
     for key, value in shared.items():
         assert value == pytest.approx(per_step[key], rel=1e-4, abs=1e-6), key
     assert shared_grads.keys() == step_grads.keys()
-    assert any(".vlm." in n and bool(g.abs().sum() > 0) for n, g in shared_grads.items()) == (scope == "vlm")
+    assert any(vlm in n and bool(g.abs().sum() > 0) for n, g in shared_grads.items()) == (scope == "vlm")
     for name, grad in shared_grads.items():
         torch.testing.assert_close(grad, step_grads[name], rtol=1e-4, atol=1e-6, msg=name)
 
@@ -346,7 +386,8 @@ def test_a_grpo_update_shares_each_calls_prefix_and_trains_the_expert(tiny_folde
 def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
     """Rows of the KV cache and masks (without the cache: of the observations): denoising against
     a selected prefix is denoising each call against its own."""
-    for policy in (load(tiny_folder), load(tiny_folder, prefix_cache=False)):
+    cached = load(tiny_folder)
+    for policy in (cached, load(tiny_folder, prefix_cache=False)) if cached.type == "smolvla" else (cached,):
         obs = policy.processor(raw_obs(3))
         rows = torch.tensor([2, 0, 0, 1, 2])
         x, t = torch.randn(5, *policy.chunk_shape), torch.tensor([1.0, 0.6, 0.3, 1.0, 0.3])
@@ -375,7 +416,8 @@ def test_a_checkpoint_keeps_only_the_ema_copys_own_tensors_and_resumes_it_exactl
     frozen = {n for n, p in policy.named_parameters() if not p.requires_grad}
     trained = {n for n, p in policy.named_parameters() if p.requires_grad}
     assert frozen and not (saved.keys() & frozen) and trained <= saved.keys()
-    assert not any(".vlm_with_expert.vlm." in k or "state_proj" in k for k in saved)
+    assert not any(PARTS[policy.type]["vlm"] in k for k in saved)
+    assert any("state_proj" in k for k in saved) == PARTS[policy.type]["state_trained"]("expert")
     whole = algo.ema.state_dict()
     size = sum(v.numel() * v.element_size() for v in saved.values())
     assert size < 0.6 * sum(v.numel() * v.element_size() for v in whole.values())  # 450 M: 22 % (trained share)
@@ -383,7 +425,7 @@ def test_a_checkpoint_keeps_only_the_ema_copys_own_tensors_and_resumes_it_exactl
     def resumed(state):
         other = StepNFT(ckpt["policy"], cfg, iterations=4, generator=torch.Generator())
         other.load_state_dict(ckpt["state"]["algorithm"] | state)
-        assert other.ema.lerobot.model.vlm_with_expert.vlm is other.policy.lerobot.model.vlm_with_expert.vlm
+        assert other.ema.prefix_modules()[0] is other.policy.prefix_modules()[0]
         return other.ema.state_dict()
 
     for state in ({}, {"ema": whole}):  # this checkpoint, and one holding the whole EMA state
@@ -406,14 +448,21 @@ def test_value_features_pool_the_prefix_hidden_states_and_add_the_state(tiny_fol
     with torch.no_grad():
         features = policy.value_features(obs)
         embs, pad_masks, att_masks = policy._embed_prefix(obs)
-        from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks
+        if policy.type == "smolvla":
+            from lerobot.policies.smolvla.modeling_smolvla import make_att_2d_masks
 
-        (hidden, _), _ = model.vlm_with_expert.forward(
-            attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
-            past_key_values=None, inputs_embeds=[embs, None], use_cache=True,
-            **({"fill_kv_cache": True} if policy._dict_cache else {}))  # LeRobot 0.4's dict cache
+            (hidden, _), _ = model.vlm_with_expert.forward(
+                attention_mask=make_att_2d_masks(pad_masks, att_masks), position_ids=torch.cumsum(pad_masks, dim=1) - 1,
+                past_key_values=None, inputs_embeds=[embs, None], use_cache=True,
+                **({"fill_kv_cache": True} if policy._dict_cache else {}))  # LeRobot 0.4's dict cache
+        else:  # π0 / π0.5: LeRobot's prefix pass of sample_actions, the VLM's Gemma alone
+            from lerobot.policies.common.vla_utils import make_att_2d_masks, prepare_attention_masks_4d
+
+            hidden = policy.language_model(
+                inputs_embeds=embs, attention_mask=prepare_attention_masks_4d(make_att_2d_masks(pad_masks, att_masks)),
+                position_ids=torch.cumsum(pad_masks, dim=1) - 1, use_cache=True).last_hidden_state
         context = policy.encode(obs)
-    width = model.vlm_with_expert.config.text_config.hidden_size
+    width = vlm_width(policy)
     assert features.shape == (VALUE_CHUNK + 5, width + 2)
     assert bool((~pad_masks).any())  # there is padding to leave out
     valid = pad_masks[..., None].float()
@@ -428,7 +477,10 @@ def test_value_features_pool_the_prefix_hidden_states_and_add_the_state(tiny_fol
     vlm = load(tiny_folder, train="vlm")
     vlm.value_features(vlm.processor(raw_obs(2))).square().sum().backward()
     reached = {n for n, p in vlm.named_parameters() if p.grad is not None and bool(p.grad.abs().sum() > 0)}
-    assert any(".vlm.model.text_model." in n for n in reached) and not any("vision_model" in n for n in reached)
+    part = PARTS[policy.type]
+    # The vision encoder trains as LeRobot's own flag says (SmolVLA's default freezes it, π0's does not).
+    vision_trains = not vlm.lerobot.config.freeze_vision_encoder
+    assert any(part["lm"] in n for n in reached) and any(part["vision"] in n for n in reached) == vision_trains
 
 
 @needs_lerobot
@@ -436,12 +488,13 @@ def test_value_features_pool_the_prefix_hidden_states_and_add_the_state(tiny_fol
                                                  ("grpo", "expert+state", False)])
 def test_ppo_and_grpo_updates_change_only_the_trained_parameters(tiny_folder, algo, scope, shared):
     """PPO (its value head on the pooled prefix and the state; detached, or sharing a trained
-    VLM) and GRPO update a SmolVLA through the same velocity calls as π-StepNFT."""
+    VLM) and GRPO update each model through the same velocity calls as π-StepNFT."""
     from stepnft.algos.base import make_algorithm
     from stepnft.algos.grpo import GRPOConfig
     from stepnft.algos.ppo import PPOConfig
 
     policy = load(tiny_folder, train=scope)
+    part = PARTS[policy.type]
     batch = rollout_batch(policy, group=4)
     before = {n: p.detach().clone() for n, p in policy.named_parameters()}
     cfg = (PPOConfig(lr=1e-3, minibatch_size=24, update_epochs=1, critic_shares_encoder=shared) if algo == "ppo"
@@ -451,15 +504,15 @@ def test_ppo_and_grpo_updates_change_only_the_trained_parameters(tiny_folder, al
     assert metrics["losses/update_steps"] == 2 and metrics["losses/skipped_nonfinite"] == 0  # 16 calls, 8 a step
     assert np.isfinite(metrics["losses/policy_loss"])
     if algo == "ppo":
-        width = policy.lerobot.model.vlm_with_expert.config.text_config.hidden_size
-        assert learner.critic.net[0].in_features == width + 2 and np.isfinite(metrics["losses/value_loss"])
+        assert learner.critic.net[0].in_features == vlm_width(policy) + 2 and np.isfinite(metrics["losses/value_loss"])
         assert (learner.critic_optimizer is None) == shared
     changed = {n for n, p in policy.named_parameters() if not torch.equal(p, before[n])}
     trained = {n for n, p in policy.named_parameters() if p.requires_grad}
-    assert changed and changed <= trained and any("lm_expert" in n for n in changed)
-    assert not any("vision_model" in n for n in changed)
-    assert any(".vlm." in n for n in changed) == (scope == "vlm")
-    assert any("state_proj" in n for n in changed) == (scope != "expert")
+    assert changed and changed <= trained and any(part["expert"] in n for n in changed)
+    vision_trains = scope == "vlm" and not policy.lerobot.config.freeze_vision_encoder  # LeRobot's own flag
+    assert any(part["vision"] in n for n in changed) == vision_trains
+    assert any(part["vlm"] in n for n in changed) == (scope == "vlm")
+    assert any("state_proj" in n for n in changed) == part["state_trained"](scope)
 
 
 @needs_lerobot
@@ -474,7 +527,7 @@ def test_save_load_round_trip_gives_the_same_actions(tiny_folder, tmp_path):
     sft_train(policy, {"obs": raw, "actions": actions, "mask": torch.ones(64, 2, dtype=torch.bool)},
               SFTConfig(steps=3, batch_size=16), torch.Generator().manual_seed(0))
     policy.save_pretrained(tmp_path / "saved")
-    # LeRobot's own files: a LeRobot user loads lerobot/ with SmolVLAPolicy.from_pretrained
+    # LeRobot's own files: a LeRobot user loads lerobot/ with SmolVLAPolicy / PI0Policy / PI05Policy.from_pretrained
     assert {"config.json", "model.safetensors", "policy_preprocessor.json",
             "policy_postprocessor.json"} <= {p.name for p in (tmp_path / "saved" / "lerobot").iterdir()}
     loaded = load_policy(tmp_path / "saved")
@@ -487,9 +540,51 @@ def test_save_load_round_trip_gives_the_same_actions(tiny_folder, tmp_path):
         torch.testing.assert_close(a.env_actions(x), b.env_actions(y), rtol=0, atol=0)
     # the robot's actions are LeRobot's un-normalised ones, and model_actions inverts them
     stats = policy.processor.stats["action"]
-    expected = x[..., :2] * torch.tensor(stats["std"]) + torch.tensor(stats["mean"])
+    if policy.type == "pi05":  # π0.5 normalises by quantiles: [q01, q99] -> [-1, 1]
+        low, high = torch.tensor(stats["q01"]), torch.tensor(stats["q99"])
+        expected = (x[..., :2] + 1) / 2 * (high - low) + low
+    else:
+        expected = x[..., :2] * torch.tensor(stats["std"]) + torch.tensor(stats["mean"])
     torch.testing.assert_close(policy.env_actions(x), expected)
     torch.testing.assert_close(policy.model_actions(policy.env_actions(x)), x, rtol=1e-5, atol=1e-5)
+
+
+@needs_lerobot
+def test_lerobots_own_from_pretrained_loads_a_stepnft_folder_and_selects_the_same_actions(tiny_folder, tmp_path):
+    """What a LeRobot user does with a policy stepnft fine-tuned: ``<Model>Policy.from_pretrained``
+    on its ``lerobot/`` folder and LeRobot's own pre-processor, post-processor and
+    ``predict_action_chunk``: the same robot actions as stepnft's ODE sampler on the same noise."""
+    import importlib
+
+    from lerobot.processor import PolicyProcessorPipeline
+    from stepnft.algos.sft import SFTConfig, sft_train
+    from stepnft.policies.lerobot.processor import (batch_to_transition, policy_action_to_transition,
+                                                    transition_to_batch, transition_to_policy_action)
+
+    policy = load(tiny_folder)
+    raw = raw_obs(64, seed=5)
+    actions = torch.rand(64, 2, 2) * 0.5
+    policy.processor.fit(raw["state"], actions)
+    sft_train(policy, {"obs": raw, "actions": actions, "mask": torch.ones(64, 2, dtype=torch.bool)},
+              SFTConfig(steps=3, batch_size=16), torch.Generator().manual_seed(0))
+    policy.save_pretrained(tmp_path / "saved")
+    model = policy.type
+    policy_class = getattr(importlib.import_module(f"lerobot.policies.{model}.modeling_{model}"),
+                           {"smolvla": "SmolVLAPolicy", "pi0": "PI0Policy", "pi05": "PI05Policy"}[model])
+    folder = tmp_path / "saved" / "lerobot"
+    theirs = policy_class.from_pretrained(folder).eval()
+    pre = PolicyProcessorPipeline.from_pretrained(folder, config_filename="policy_preprocessor.json",
+                                                  to_transition=batch_to_transition, to_output=transition_to_batch)
+    post = PolicyProcessorPipeline.from_pretrained(folder, config_filename="policy_postprocessor.json",
+                                                   to_transition=policy_action_to_transition,
+                                                   to_output=transition_to_policy_action)
+    batch = policy.processor.lerobot_batch(raw_obs(4, seed=1))  # the raw LeRobot batch: state, images, task
+    noise = torch.randn((4, *policy.chunk_shape), generator=torch.Generator().manual_seed(7))
+    with torch.no_grad():
+        chunk = theirs.predict_action_chunk(pre(batch), noise=noise)
+        ours = policy.sample(policy.processor(raw_obs(4, seed=1)), noise_level=0.0,
+                             generator=torch.Generator().manual_seed(7))
+    torch.testing.assert_close(policy.env_actions(ours.actions), post(chunk), rtol=1e-5, atol=1e-5)
 
 
 @needs_lerobot
@@ -502,7 +597,7 @@ def test_a_plain_lerobot_folder_loads_as_is(tiny_folder, tmp_path):
     policy.lerobot.save_pretrained(plain)
     policy.processor.save(plain)
     loaded = load_policy(plain)
-    assert loaded.type == "smolvla" and loaded.config.lerobot == "." and loaded.config.n_exec == 2
+    assert loaded.type == policy.type and loaded.config.lerobot == "." and loaded.config.n_exec == 2
     loaded.processor.bind_instructions(policy.processor.instructions)
     raw = raw_obs(3)
     x = policy.sample(policy.processor(raw), generator=torch.Generator().manual_seed(0)).actions
@@ -523,10 +618,10 @@ def test_processor_errors_are_one_line(tiny_folder):
 @needs_lerobot
 def test_pi0_and_pi05_say_what_is_missing():
     from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
-    from stepnft.policies.lerobot.pi0 import PI0Adapter, PI05Adapter, PiUnavailable, transformers_patched
+    from stepnft.policies.lerobot.pi0 import PI0Adapter, PI05Adapter, PiUnavailable, needs_patched_transformers
 
-    if transformers_patched():
-        pytest.skip("LeRobot's patched transformers is installed: π0 builds here")
+    if not needs_patched_transformers():
+        pytest.skip("π0 builds here (LeRobot 0.6, or 0.4 with its patched transformers)")
     from lerobot.policies.pi0.configuration_pi0 import PI0Config
     from lerobot.policies.pi05.configuration_pi05 import PI05Config
 
@@ -540,7 +635,7 @@ def test_pi0_and_pi05_say_what_is_missing():
 @pytest.mark.slow
 def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monkeypatch, capsys):
     """The LeRobot user's path on the image bandit: `stepnft demos` with cameras, `stepnft sft
-    --init <new SmolVLA>` on them, `stepnft train --init RUN/policy`, checkpoints, resume, eval."""
+    --init <new VLA>` on them, `stepnft train --init RUN/policy`, checkpoints, resume, eval."""
     from stepnft.cli import main
     from stepnft.envs import SIMULATORS, SimulatorInfo
     from stepnft.policies.base import load_policy
@@ -558,7 +653,8 @@ def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monk
         "--sft.batch-size", "8", "--env.envs-per-task", "8", "--eval.episodes", "0")
     assert json.loads((tmp_path / "sft" / "summary.json").read_text()) == {"sft": None}  # `train` evaluates it
     sft = load_policy(tmp_path / "sft" / "policy")
-    assert sft.type == "smolvla" and sft.config.cameras == ["synthetic"] and not sft.processor.needs_fit
+    model = json.loads((tiny_folder / "config.json").read_text())["type"]
+    assert sft.type == model and sft.config.cameras == ["synthetic"] and not sft.processor.needs_fit
     assert load_policy(tiny_folder).processor.needs_fit  # the --init folder itself is left as it was
 
     argv = ["train", "--init", tmp_path / "sft" / "policy", "--run-dir", tmp_path / "rl", "--iterations", "2",
@@ -570,7 +666,7 @@ def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monk
     records = [json.loads(line) for line in (tmp_path / "rl" / "metrics.jsonl").read_text().splitlines()]
     assert any(r.get("losses/update_steps", 0) > 0 for r in records)
     final = load_policy(tmp_path / "rl" / "policy")
-    assert final.type == "smolvla" and (tmp_path / "rl" / "checkpoints" / "LATEST").is_file()
+    assert final.type == model and (tmp_path / "rl" / "checkpoints" / "LATEST").is_file()
     run("train", "--resume", tmp_path / "rl")  # finished: resumes to the same end
     # The env's cameras follow the policy's in `stepnft eval` (its suites bind instructions too).
     run("eval", "--policy", tmp_path / "rl" / "policy", "--env.name", "bandit-image", "--env.tasks", "bandit",
@@ -586,8 +682,9 @@ def test_demos_sft_and_train_from_the_cli_and_resume(tiny_folder, tmp_path, monk
 
 @needs_lerobot
 @pytest.mark.slow
-def test_compare_stepnft_ppo_and_grpo_with_a_smolvla_on_a_metaworld_camera_task(tmp_path, monkeypatch):
-    """`stepnft compare --algos stepnft,ppo,grpo` with a new tiny SmolVLA on reach-v3 seen through
+@pytest.mark.parametrize("model", MODELS)
+def test_compare_stepnft_ppo_and_grpo_with_a_vla_on_a_metaworld_camera_task(tmp_path, monkeypatch, model):
+    """`stepnft compare --algos stepnft,ppo,grpo` with a new tiny VLA of each model on reach-v3 seen through
     MetaWorld's corner camera, at a tiny budget: the SmolVLA (the base config's ``init``) is the
     SFT start, each algorithm trains the SFT policy through the CLI (PPO's value head on the
     pooled prefix and the state), the report has every row. A functional check, not a result."""
@@ -596,13 +693,14 @@ def test_compare_stepnft_ppo_and_grpo_with_a_smolvla_on_a_metaworld_camera_task(
     from stepnft.cli import main
     from stepnft.config import DemoConfig, EnvConfig, EvalConfig, TrainConfig, save_config
     from stepnft.policies.base import load_policy
-    from stepnft.policies.lerobot.tiny import NewSmolVLA, new_smolvla
+    from stepnft.policies.lerobot.tiny import NewVLA, new_vla
     from stepnft.runs import read_metrics
 
+    skip_without(model)
     monkeypatch.setenv("MUJOCO_GL", "egl")
-    vla = tmp_path / "tiny_smolvla"
-    new_smolvla(NewSmolVLA(out=str(vla), state_dim=39, action_dim=4, chunk_size=4, n_exec=4, num_steps=2,
-                           cameras=["corner"], image_size=32, train="expert+state"))
+    vla = tmp_path / f"tiny_{model}"
+    new_vla(NewVLA(out=str(vla), model=model, state_dim=39, action_dim=4, chunk_size=4, n_exec=4, num_steps=2,
+                   cameras=["corner"], image_size=32, train="expert+state"))
     base = TrainConfig(
         init=str(vla), iterations=2, episodes_per_iteration=4, checkpoint_every=1,
         env=EnvConfig(tasks=["reach-v3"], cameras=["corner"], image_size=32, max_episode_steps=60, envs_per_task=4),
@@ -614,13 +712,13 @@ def test_compare_stepnft_ppo_and_grpo_with_a_smolvla_on_a_metaworld_camera_task(
                  "--env-steps", "300", "--jobs", "1", "--out", str(out)])
     logs = {p.name: p.read_text()[-2000:] for p in (out / "logs").glob("*.log")}
     assert code == 0, logs
-    assert load_policy(out / "sft" / "seed0" / "policy").type == "smolvla"
+    assert load_policy(out / "sft" / "seed0" / "policy").type == model
     table = (out / "comparison.md").read_text()
     for algo in ("stepnft", "ppo", "grpo"):
         run = out / "runs" / algo / "seed0"
         assert f"| {algo} |" in table
         assert json.loads((run / "summary.json").read_text())["env_steps"] >= 300
-        assert load_policy(run / "policy").type == "smolvla"
+        assert load_policy(run / "policy").type == model
         records = read_metrics(run / "metrics.jsonl")
         # GRPO's groups of an untrained policy may all fail alike: its minibatches are then skipped
         # (its steps on a SmolVLA: test_ppo_and_grpo_updates_change_only_the_trained_parameters).

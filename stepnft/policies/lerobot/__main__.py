@@ -1,5 +1,5 @@
-"""``python -m stepnft.policies.lerobot new --out DIR [...]``: a new SmolVLA policy folder built on
-an offline VLM configuration (``stepnft.policies.lerobot.tiny``); ``vlm --out DIR --size tiny``
+"""``python -m stepnft.policies.lerobot new --out DIR [--model smolvla|pi0|pi05] [...]``: a new
+SmolVLA, π0 or π0.5 policy folder built on an offline configuration (``stepnft.policies.lerobot.tiny``); ``vlm --out DIR --size tiny``
 writes only the VLM configuration (for ``SmolVLAConfig(vlm_model_name=DIR, load_vlm_weights=False)``);
 ``merge --policy DIR --out DIR2`` folds a policy's LoRA adapters into its weights (a plain
 LeRobot folder in ``DIR2/lerobot``)."""
@@ -17,7 +17,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if argv and argv[0] in ("-h", "--help") else 2
     import tyro
 
-    from stepnft.policies.lerobot.tiny import NewSmolVLA, new_smolvla, write_vlm
+    from stepnft.policies.lerobot.tiny import NewVLA, new_vla, write_vlm
 
     try:
         if argv[0] == "vlm":
@@ -58,11 +58,12 @@ def main(argv: list[str] | None = None) -> int:
             policy.merge_lora().save_pretrained(out)
             print(f"wrote {out} (adapters merged)")
         else:
-            spec = tyro.cli(NewSmolVLA, args=argv[1:], prog="python -m stepnft.policies.lerobot new")
-            policy = new_smolvla(spec)
+            spec = tyro.cli(NewVLA, args=argv[1:], prog="python -m stepnft.policies.lerobot new")
+            policy = new_vla(spec)
             total = sum(p.numel() for p in policy.parameters())
             trained = sum(p.numel() for p in policy.parameters() if p.requires_grad)
-            print(f"wrote a new SmolVLA ({total / 1e6:.2f} M parameters, {trained / 1e6:.2f} M trained) to {spec.out}")
+            label = {"smolvla": "SmolVLA", "pi0": "π0", "pi05": "π0.5"}[spec.model]
+            print(f"wrote a new {label} ({total / 1e6:.2f} M parameters, {trained / 1e6:.2f} M trained) to {spec.out}")
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {str(err).splitlines()[0]}", file=sys.stderr)
         return 2

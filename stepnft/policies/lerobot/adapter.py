@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import importlib
 import io
 import json
@@ -52,6 +53,14 @@ LORA_NAME = "lora.safetensors"
 VALUE_CHUNK = 32
 """Calls per prefix pass of :meth:`LeRobotFlowPolicy.value_features`: PPO's pass over an
 iteration's calls (hundreds) would otherwise hold the vision encoder's activations for all at once."""
+
+
+@functools.lru_cache(maxsize=None)
+def lerobot_version() -> tuple[int, ...]:
+    """The installed LeRobot's version, as numbers (``(0, 6, 1)``)."""
+    from importlib.metadata import version
+
+    return tuple(int(part) for part in version("lerobot").split(".")[:3] if part.isdigit())
 
 
 def lazy(target: str) -> Callable[[], Any]:
@@ -117,7 +126,11 @@ def checkpoint_methods(module: nn.Module, names: tuple[str, ...], enabled: bool 
             # A transformers 5 cache (LeRobot 0.6) is extended in place by the layer: the backward
             # pass's recomputation runs on a copy of it as it was, so it neither sees its own
             # keys twice nor changes the cache again.
-            index = args[2] if len(args) > 2 else kwargs["layer_idx"]
+            # The layer's index in the cache: SmolVLA's attention methods take it (third argument);
+            # a transformers decoder layer (π0's Gemma) knows it from its attention module.
+            index = args[2] if len(args) > 2 else kwargs.get("layer_idx", None)
+            if index is None:
+                index = self.self_attn.layer_idx
             layer = cache.layers[index] if index < len(cache.layers) else None
             before = (layer.keys, layer.values) if layer is not None and layer.is_initialized else None
             calls = []
@@ -371,7 +384,7 @@ class LeRobotFlowPolicy(Policy):
             else:
                 model = policy_class.from_pretrained(lerobot_dir, config=lerobot_cfg)
         processor = LeRobotProcessor.create(lerobot_cfg, cls.make_pipelines(), lerobot_dir,
-                                            cls.processor_overrides(lerobot_cfg, device))
+                                            cls.processor_overrides(lerobot_cfg, device, vlm))
         settings = settings.completed(lerobot_config_dict(lerobot_cfg))
         return cls(settings, model, processor)
 
@@ -381,8 +394,8 @@ class LeRobotFlowPolicy(Policy):
         lerobot_cfg.device = device
 
     @classmethod
-    def processor_overrides(cls, lerobot_cfg, device: str) -> dict[str, Any]:
-        """Overrides of the saved pipelines' steps (by LeRobot's step names)."""
+    def processor_overrides(cls, lerobot_cfg, device: str, vlm: str | None = None) -> dict[str, Any]:
+        """Overrides of the saved pipelines' steps (by LeRobot's step names); ``vlm`` as :meth:`build`'s."""
         return {"device_processor": {"device": device}}
 
 

@@ -37,6 +37,28 @@ from lerobot.utils.constants import (ACTION, OBS_STATE, POLICY_POSTPROCESSOR_DEF
                                      POLICY_PREPROCESSOR_DEFAULT_NAME)
 
 
+@contextmanager
+def local_tokenizer(folder: str | None):
+    """Within the block, LeRobot's tokenizer step loads ``folder``'s tokenizer whatever name its
+    pipeline factory gives it (π0's names PaliGemma's on the hub: nothing is downloaded here)."""
+    if not folder:
+        yield
+        return
+    from lerobot.processor import tokenizer_processor
+    from transformers import AutoTokenizer
+
+    class Local:
+        @staticmethod
+        def from_pretrained(*args, **kwargs):
+            return AutoTokenizer.from_pretrained(folder)
+
+    saved, tokenizer_processor.AutoTokenizer = tokenizer_processor.AutoTokenizer, Local
+    try:
+        yield
+    finally:
+        tokenizer_processor.AutoTokenizer = saved
+
+
 class LeRobotProcessor:
     """A LeRobot policy's pre- and post-processor pipelines, fed from stepnft's raw observations."""
 
@@ -65,7 +87,12 @@ class LeRobotProcessor:
                 overrides={k: v for k, v in (overrides or {}).items() if k == "device_processor"},
                 to_transition=policy_action_to_transition, to_output=transition_to_policy_action)
         else:
-            pre, post = make_pipelines(lerobot_config)
+            tokenizer = (overrides or {}).get("tokenizer_processor", {}).get("tokenizer_name")
+            with local_tokenizer(tokenizer):
+                pre, post = make_pipelines(lerobot_config)
+            for step in pre.steps:
+                if tokenizer and getattr(step, "tokenizer_name", None):
+                    step.tokenizer_name = tokenizer  # the saved pipeline names the folder it read
         return cls(lerobot_config, pre, post)
 
     def save(self, folder: Path) -> None:

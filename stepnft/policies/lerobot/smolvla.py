@@ -110,8 +110,8 @@ class SmolVLAAdapter(LeRobotFlowPolicy):
         lerobot_cfg.load_vlm_weights = False
 
     @classmethod
-    def processor_overrides(cls, lerobot_cfg, device: str) -> dict:
-        return super().processor_overrides(lerobot_cfg, device) | {
+    def processor_overrides(cls, lerobot_cfg, device: str, vlm: str | None = None) -> dict:
+        return super().processor_overrides(lerobot_cfg, device, vlm) | {
             "tokenizer_processor": {"tokenizer_name": lerobot_cfg.vlm_model_name}}
 
     # --- the prefix, once per policy call -----------------------------------------------------------

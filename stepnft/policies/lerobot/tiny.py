@@ -1,5 +1,5 @@
-"""Offline SmolVLA models: a VLM configuration folder written by the project (no download), and
-new SmolVLA policy folders built on it.
+"""Offline LeRobot VLAs (SmolVLA, π0, π0.5): configuration folders written by the project (no
+download), and new, randomly initialised policy folders built on them.
 
 SmolVLA reads its VLM from ``SmolVLAConfig.vlm_model_name``: a ``SmolVLMConfig`` ``config.json``,
 a tokenizer carrying the image special tokens SmolVLA looks up (``<fake_token_around_image>``,
@@ -14,11 +14,18 @@ initialised, so :func:`write_vlm` makes tests and CPU runs independent of the ne
 
 The tokenizer is byte-level BPE without merges (256 byte symbols plus the special tokens), built
 with ``tokenizers``: any instruction tokenises, one token per byte.
+
+π0 and π0.5 (LeRobot 0.6) take their sizes from LeRobot's Gemma variants: ``full`` is theirs
+(a PaliGemma with the ``gemma_2b`` language model and SigLIP-So400m vision tower, a
+``gemma_300m`` action expert: about 3.5 B parameters), ``tiny`` is stepnft's
+``stepnft_tiny_vlm`` / ``stepnft_tiny_expert`` (2 layers, 64 / 32 wide, a 2-layer 32-wide vision
+tower on 32 px images; ``stepnft.policies.lerobot.pi0``). Their tokenizer is the same byte-level
+one, saved in the policy's ``vlm/`` folder (LeRobot's default names PaliGemma's on the hub).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -85,15 +92,24 @@ def write_vlm(folder: str | Path, size: Literal["tiny", "smolvla"] = "tiny") -> 
     return folder
 
 
+MODELS = ("smolvla", "pi0", "pi05")
+"""The LeRobot models :func:`new_vla` builds."""
+PI_SIZES = {"tiny": ("stepnft_tiny_vlm", "stepnft_tiny_expert", 32), "full": ("gemma_2b", "gemma_300m", 224)}
+"""π0 / π0.5 sizes: (VLM variant, action expert variant, image side)."""
+
+
 @dataclass
-class NewSmolVLA:
-    """Write a new, randomly initialised SmolVLA policy folder (stepnft's layout: config.json +
-    lerobot/ + vlm/) built on an offline VLM configuration: the start of `stepnft sft --init`."""
+class NewVLA:
+    """Write a new, randomly initialised LeRobot VLA policy folder (stepnft's layout: config.json +
+    lerobot/ + vlm/) built on an offline configuration: the start of `stepnft sft --init`."""
 
     out: str
     """Policy folder to create (must not exist)."""
-    size: Literal["tiny", "smolvla"] = "tiny"
-    """VLM size: tiny (tests, CPU learning runs) or smolvla (SmolVLA's real architecture, ~450 M)."""
+    model: Literal["smolvla", "pi0", "pi05"] = "smolvla"
+    """LeRobot model: smolvla, pi0 or pi05 (π0 / π0.5 need LeRobot 0.6)."""
+    size: Literal["tiny", "full", "smolvla"] = "tiny"
+    """tiny (tests, CPU learning runs) or full (the model's real architecture, random weights:
+    SmolVLA ~450 M parameters, π0 / π0.5 ~3.5 B); smolvla is SmolVLA's full size by its old name."""
     state_dim: int = 39
     """State size (MetaWorld: 39)."""
     action_dim: int = 4
@@ -117,7 +133,11 @@ class NewSmolVLA:
     """Seed of the random initialisation."""
 
 
-def build_smolvla(spec: NewSmolVLA, vlm_dir: str | Path):
+NewSmolVLA = NewVLA
+"""The name :class:`NewVLA` had when it built SmolVLA only (``model`` defaults to smolvla)."""
+
+
+def build_smolvla(spec: NewVLA, vlm_dir: str | Path):
     """A new, randomly initialised SmolVLA adapter as ``spec`` describes, its VLM configuration
     written to ``vlm_dir`` (not saved: see :func:`new_smolvla`)."""
     import torch
@@ -127,6 +147,10 @@ def build_smolvla(spec: NewSmolVLA, vlm_dir: str | Path):
     from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
     from stepnft.policies.lerobot.smolvla import SmolVLAAdapter
 
+    if spec.model != "smolvla":
+        return build_pi(spec, vlm_dir)
+    size = "smolvla" if spec.size == "full" else spec.size
+    spec = replace(spec, size=size)
     vlm = write_vlm(vlm_dir, spec.size)
     side = SIZES[spec.size]["vision"]["image_size"]
     pad = 32 if spec.size == "smolvla" else 0  # SmolVLA pads state and action to 32; the tiny model does not pad
@@ -144,12 +168,62 @@ def build_smolvla(spec: NewSmolVLA, vlm_dir: str | Path):
                                 None, None)
 
 
-def new_smolvla(spec: NewSmolVLA):
-    """Build and save the policy :class:`NewSmolVLA` describes (its VLM configuration in
-    ``out/vlm``); returns it."""
+def build_pi(spec: NewVLA, vlm_dir: str | Path):
+    """A new, randomly initialised π0 / π0.5 adapter as ``spec`` describes (LeRobot 0.6), its
+    tokenizer written to ``vlm_dir`` (not saved: see :func:`new_vla`)."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from stepnft.policies.lerobot.configuration import LeRobotPolicyConfig
+    from stepnft.policies.lerobot.pi0 import PI0Adapter, PI05Adapter, PiUnavailable, needs_patched_transformers
+
+    if needs_patched_transformers():
+        raise PiUnavailable(f"{spec.model} needs LeRobot 0.6 (bash scripts/bootstrap.sh --lerobot): this LeRobot "
+                            "builds it only on its patched transformers")
+    size = "full" if spec.size == "smolvla" else spec.size
+    vlm_variant, expert_variant, side = PI_SIZES[size]
+    vlm_dir = Path(vlm_dir)
+    vlm_dir.mkdir(parents=True, exist_ok=True)
+    byte_tokenizer().save_pretrained(vlm_dir)
+    features = {"observation.state": PolicyFeature(FeatureType.STATE, (spec.state_dim,))}
+    features |= {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, spec.image_size, spec.image_size))
+                 for c in spec.cameras}
+    if spec.model == "pi0":
+        from lerobot.policies.pi0.configuration_pi0 import PI0Config as config_class
+        adapter, prompt = PI0Adapter, 48
+    else:
+        from lerobot.policies.pi05.configuration_pi05 import PI05Config as config_class
+        # π0.5's prompt carries the discretised state: one byte token per character of it.
+        adapter, prompt = PI05Adapter, 64 + 4 * spec.state_dim
+    pad = 32 if size == "full" else 0  # LeRobot pads state and action to 32; the tiny model does not pad
+    lerobot_cfg = config_class(
+        paligemma_variant=vlm_variant, action_expert_variant=expert_variant, dtype="float32",
+        chunk_size=spec.chunk_size, n_action_steps=spec.n_exec, num_inference_steps=spec.num_steps,
+        max_state_dim=max(pad, spec.state_dim), max_action_dim=max(pad, spec.action_dim),
+        image_resolution=(side, side), tokenizer_max_length=prompt, input_features=features,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (spec.action_dim,))}, device="cpu")
+    torch.manual_seed(spec.seed)
+    return adapter.build(LeRobotPolicyConfig(train=spec.train, lora_rank=spec.lora_rank), lerobot_cfg, None,
+                         str(vlm_dir.resolve()))
+
+
+def build_vla(spec: NewVLA, vlm_dir: str | Path):
+    """A new, randomly initialised adapter of ``spec.model`` (not saved: see :func:`new_vla`)."""
+    if spec.model not in MODELS:
+        raise ValueError(f"unknown LeRobot model {spec.model!r}; choose one of {', '.join(MODELS)}")
+    return build_smolvla(spec, vlm_dir)
+
+
+def new_vla(spec: NewVLA):
+    """Build and save the policy :class:`NewVLA` describes (its VLM configuration or tokenizer
+    in ``out/vlm``); returns it."""
     out = Path(spec.out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} is not empty: choose a new folder for the policy")
-    policy = build_smolvla(spec, out / "vlm")
+    policy = build_vla(spec, out / "vlm")
     policy.save_pretrained(out)
     return policy
+
+
+new_smolvla = new_vla
+"""The name :func:`new_vla` had when it built SmolVLA only."""
