@@ -1,6 +1,6 @@
 """What an update costs at a VLA's real size (SmolVLA, π0, π0.5): seconds per update sample and peak memory for
 π-StepNFT, PPO (Flow-SDE, its value head on the VLA's pooled prefix) and GRPO at an equal batch,
-for each precision (and with gradient checkpointing), plus policy calls/s with and without the
+for each precision (with gradient checkpointing, and with LoRA on the VLM), plus policy calls/s with and without the
 prefix cache.
 
 The model (``--model``) is the full-size architecture built offline from a local configuration
@@ -43,9 +43,12 @@ import torch
 import provenance
 
 ALGOS = ("stepnft", "ppo", "grpo")
-CASES = [(algo, "fp32", False) for algo in ALGOS] + [(algo, "bf16", False) for algo in ALGOS] + \
-        [(algo, "bf16", True) for algo in ALGOS]
-"""(algorithm, precision, gradient checkpointing) of the cost table, in its row order."""
+LORA_RANK = 16
+CASES = [(algo, "bf16", False, 0) for algo in ALGOS] + [(algo, "bf16", True, 0) for algo in ALGOS] + \
+        [(algo, "bf16", True, LORA_RANK) for algo in ALGOS] + [(algo, "fp32", False, 0) for algo in ALGOS]
+"""(algorithm, precision, gradient checkpointing, LoRA rank) of the cost table, in its row order:
+rank 0 trains the action expert (``train: expert``), a rank trains LoRA adapters on the VLM's
+attention and the expert (``train: vlm``). fp32 last: at π0's size it may not fit what is free."""
 CHUNK = {"tiny": (4, 4), "full": (50, 10)}
 """Chunk size and denoising steps K per size (SmolVLA's and π0's defaults at full size)."""
 MODELS = ("smolvla", "pi0", "pi05")
@@ -55,6 +58,21 @@ def raw_obs(calls: int, side: int, seed: int = 0) -> dict:
     g = torch.Generator().manual_seed(seed)
     return {"state": torch.randn(calls, 39, generator=g), "task": torch.zeros(calls, dtype=torch.int64),
             "image": torch.randint(0, 256, (calls, 1, 3, side, side), dtype=torch.uint8, generator=g)}
+
+
+def available_gb() -> float:
+    """``MemAvailable`` of the machine, in GB."""
+    line = next(l for l in Path("/proc/meminfo").read_text().splitlines() if l.startswith("MemAvailable:"))
+    return int(line.split()[1]) / 2**20
+
+
+def cap_memory(gb: float) -> None:
+    """Cap this process's data segment (heap and anonymous mappings: where tensors live) at
+    ``gb``: past it an allocation fails with an error instead of the kernel killing a process."""
+    import resource
+
+    limit = int(gb * 2**30)
+    resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))
 
 
 def rss_mb(key: str = "VmRSS") -> float:
@@ -70,13 +88,13 @@ def reset_peak() -> None:
     Path("/proc/self/clear_refs").write_text("5")
 
 
-def build(model: str, size: str, device: str, tmp: Path):
+def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0):
     from stepnft.policies.lerobot.tiny import PI_SIZES, SIZES, NewVLA, build_vla
 
     chunk, steps = CHUNK[size]
     side = SIZES["smolvla" if size == "full" else size]["vision"]["image_size"] if model == "smolvla" else PI_SIZES[size][2]
     policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
-                              image_size=side), tmp / size)
+                              image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size)
     policy.processor.bind_instructions(["open the drawer"])
     return policy.to(device), side
 
@@ -125,10 +143,10 @@ def one(args) -> dict:
     torch.set_num_threads(args.threads)
     cuda = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        policy, side = build(args.model, args.size, args.device, Path(tmp))
+        policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank)
     policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
     out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
-           "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
+           "lora_rank": args.lora_rank, "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
            "trained_M": sum(p.numel() for p in policy.parameters() if p.requires_grad) / 1e6,
            "weights_MB": sum(p.nbytes for p in policy.parameters()) / 2**20}
     batch = make_batch(policy, args.algo, args.calls, side)
@@ -171,17 +189,19 @@ def one(args) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| algorithm | precision | checkpointing | s / update sample (wall) | CPU s / sample | peak memory of the "
+    lines = ["| algorithm | precision | checkpointing | trained | s / update sample (wall) | CPU s / sample | peak memory of the "
              "update (MB) | peak in all (MB) | weights (MB) | calls/s cache | calls/s no cache |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        trained = f"LoRA {r['lora_rank']} + expert" if r.get("lora_rank") else "expert"
+        trained += f" ({r['trained_M']:.3g} M)" if "trained_M" in r else ""
         if "error" in r:
-            lines.append(f"| {r['algo']} | {r['precision']} | {r['gradient_checkpointing']} | error: {r['error']} |"
-                         " | | | | | |")
+            lines.append(f"| {r['algo']} | {r['precision']} | {'on' if r['gradient_checkpointing'] else 'off'} | "
+                         f"{trained} | error: {r['error']} | | | | | | |")
             continue
         calls = [f"{r[k]:.2f}" if k in r else "" for k in ("calls_per_s_cache", "calls_per_s_no_cache")]
         lines.append(f"| {r['algo']} | {r['precision']} | {'on' if r['gradient_checkpointing'] else 'off'} | "
-                     f"{r['update_s_per_sample']:.3f} | {r['update_cpu_s_per_sample']:.3f} | {r['update_peak_MB']:.0f} | "
+                     f"{trained} | {r['update_s_per_sample']:.3f} | {r['update_cpu_s_per_sample']:.3f} | {r['update_peak_MB']:.0f} | "
                      f"{r['peak_MB']:.0f} | {r['weights_MB']:.0f} | {calls[0]} | {calls[1]} |")
     return "\n".join(lines)
 
@@ -189,7 +209,8 @@ def table(rows: list[dict]) -> str:
 def ratios(rows: list[dict]) -> dict:
     """π-StepNFT against PPO per precision: throughput (PPO's seconds per sample / π-StepNFT's)
     and peak update memory (π-StepNFT's / PPO's); bf16 against fp32: the weights' memory."""
-    by = {(r["algo"], r["precision"], r["gradient_checkpointing"]): r for r in rows if "error" not in r}
+    by = {(r["algo"], r["precision"], r["gradient_checkpointing"]): r for r in rows
+          if "error" not in r and not r.get("lora_rank")}
     out = {}
     for precision in ("fp32", "bf16"):
         s, p = by.get(("stepnft", precision, False)), by.get(("ppo", precision, False))
@@ -216,11 +237,15 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=1, help="timed updates after one warm-up")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--max-memory-gb", type=float, default=None,
+                        help="address-space cap of each row's process (default: the memory available at the start "
+                             "less 1 GB), so a row that does not fit fails alone instead of the machine's other jobs")
     parser.add_argument("--out", default=None, help="folder for compute.json and compute.md")
-    parser.add_argument("--one", nargs=3, metavar=("ALGO", "PRECISION", "CHECKPOINTING"), help=argparse.SUPPRESS)
+    parser.add_argument("--one", nargs=4, metavar=("ALGO", "PRECISION", "CHECKPOINTING", "LORA_RANK"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         args.algo, args.precision, args.checkpointing = args.one[0], args.one[1], args.one[2] == "1"
+        args.lora_rank = int(args.one[3])
         print("RESULT " + json.dumps(one(args)), flush=True)
         return
     import stepnft
@@ -237,19 +262,21 @@ def main() -> None:
                "device": args.device, "torch": torch.__version__, "threads": args.threads,
                "machine": platform.processor() or platform.machine(), "load_average_at_start": list(os.getloadavg()),
                "rows": []}
-    for algo, precision, checkpointing in CASES:
-        kept = [r for r in done_rows if (r["algo"], r["precision"], r["gradient_checkpointing"]) ==
-                (algo, precision, checkpointing)]
+    limit_gb = args.max_memory_gb or available_gb() - 1
+    results["max_memory_gb"] = limit_gb
+    for algo, precision, checkpointing, lora_rank in CASES:
+        kept = [r for r in done_rows if (r["algo"], r["precision"], r["gradient_checkpointing"], r.get("lora_rank", 0)) ==
+                (algo, precision, checkpointing, lora_rank)]
         if kept:
             results["rows"].append(kept[0])
             continue
         command = [sys.executable, __file__, "--model", args.model, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
                    "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
-                   "--one", algo, precision, "1" if checkpointing else "0"]
-        done = subprocess.run(command, capture_output=True, text=True)
+                   "--one", algo, precision, "1" if checkpointing else "0", str(lora_rank)]
+        done = subprocess.run(command, capture_output=True, text=True, preexec_fn=lambda: cap_memory(limit_gb))
         lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
         row = json.loads(lines[-1][7:]) if lines else {
-            "algo": algo, "precision": precision, "gradient_checkpointing": checkpointing,
+            "algo": algo, "precision": precision, "gradient_checkpointing": checkpointing, "lora_rank": lora_rank,
             "error": (done.stderr.strip().splitlines() or ["no output"])[-1][:200]}
         row["commit"] = results["commit"]  # a resumed table may mix commits: each row says its own
         results["rows"].append(row)
