@@ -88,13 +88,24 @@ def reset_peak() -> None:
     Path("/proc/self/clear_refs").write_text("5")
 
 
-def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0):
+def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0, precision: str = "fp32"):
     from stepnft.policies.lerobot.tiny import PI_SIZES, SIZES, NewVLA, build_vla
 
     chunk, steps = CHUNK[size]
     side = SIZES["smolvla" if size == "full" else size]["vision"]["image_size"] if model == "smolvla" else PI_SIZES[size][2]
-    policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
-                              image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size)
+    # A bf16 row builds its model in bfloat16 from the start: π0's 3.5 B parameters are 14 GB in
+    # float32, a peak that building in float32 and casting would add; the trained parameters then
+    # go back to float32, as set_precision keeps them.
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.bfloat16 if precision == "bf16" else torch.float32)
+    try:
+        policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
+                                  image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size)
+    finally:
+        torch.set_default_dtype(default)
+    for param in policy.parameters():
+        if param.requires_grad:
+            param.data = param.data.float()
     policy.processor.bind_instructions(["open the drawer"])
     return policy.to(device), side
 
@@ -143,7 +154,7 @@ def one(args) -> dict:
     torch.set_num_threads(args.threads)
     cuda = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank)
+        policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank, args.precision)
     policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
     out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
            "lora_rank": args.lora_rank, "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
