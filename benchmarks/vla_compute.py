@@ -248,8 +248,11 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=1, help="timed updates after one warm-up")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS), help="rows of these algorithms only")
+    parser.add_argument("--precisions", nargs="+", choices=["fp32", "bf16"], default=["fp32", "bf16"],
+                        help="rows of these precisions only")
     parser.add_argument("--max-memory-gb", type=float, default=None,
-                        help="address-space cap of each row's process (default: the memory available at the start "
+                        help="memory cap (RLIMIT_DATA) of each row's process (default: the memory available at the start "
                              "less 1 GB), so a row that does not fit fails alone instead of the machine's other jobs")
     parser.add_argument("--out", default=None, help="folder for compute.json and compute.md")
     parser.add_argument("--one", nargs=4, metavar=("ALGO", "PRECISION", "CHECKPOINTING", "LORA_RANK"), help=argparse.SUPPRESS)
@@ -276,6 +279,8 @@ def main() -> None:
     limit_gb = args.max_memory_gb or available_gb() - 1
     results["max_memory_gb"] = limit_gb
     for algo, precision, checkpointing, lora_rank in CASES:
+        if algo not in args.algos or precision not in args.precisions:
+            continue
         kept = [r for r in done_rows if (r["algo"], r["precision"], r["gradient_checkpointing"], r.get("lora_rank", 0)) ==
                 (algo, precision, checkpointing, lora_rank)]
         if kept:

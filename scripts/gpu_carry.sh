@@ -4,13 +4,16 @@
 #
 #     bash scripts/gpu_carry.sh [CARRY [PART]]   # default .gpucarry core
 #
-# PART core: what the MetaWorld checks need; PART vla: what the LeRobot check needs (the two
-# together pass 64 MiB with the working tree, so they go in two device calls: gpu_check.sh's PARTS).
+# PART core: what the MetaWorld checks need; PART vla: what the LeRobot checks need (the two carries
+# go in two device calls: gpu_check.sh's PARTS). The limit counts the working tree too, and the
+# tracked tree is now ~39 MB (26.7 MB of it saved policies in benchmarks/results): the vla carry
+# (~17 MiB) fits beside it, the core carry (~43 MiB: MetaWorld's wheel is 36 MB) no longer does.
 #
 # CARRY/whl: wheels, for CPython 3.12 on x86-64 Linux, of stepnft's dependencies the machine
 # lacks, at the versions installed in .venv (gymnasium, metaworld, mujoco, tyro, ...), and of
-# LeRobot 0.4.4 with what it needs beyond the machine's packages (for the full-size SmolVLA cost
-# table; a package still missing there shows in gpu_check's vla_compute.log); gpu_check.sh installs them with --no-deps. CARRY/lang_cache:
+# LeRobot 0.6 with what it needs beyond the machine's packages, at .venv-lerobot's versions (for
+# the full-size SmolVLA / π0 checks; a package still missing there shows in gpu_check's
+# vla_*.log); gpu_check.sh installs them with --no-deps. CARRY/lang_cache:
 # the quickstart tasks' instruction embeddings (from a quickstart run's lang_cache, if one is
 # here), so no sentence encoder is needed. Prints the carry's size.
 set -euo pipefail
@@ -20,9 +23,9 @@ mkdir -p "$CARRY/whl" "$CARRY/lang_cache"
 # The machine's image already holds torch, torchvision, numpy, matplotlib, tensorboard, pillow, peft,
 # accelerate, einops, rich, pyyaml, tqdm, safetensors (the device library's KINDS.md): not carried.
 MAIN="gymnasium farama-notifications metaworld mujoco glfw tyro docstring-parser typeguard shtab"
-# LeRobot 0.4.4 wants transformers 4.57 (the image has 5.x) with its tokenizers and hub client.
-LEROBOT="lerobot draccus mergedeep pyyaml-include toml transformers tokenizers huggingface-hub jsonlines deepdiff
-orderly-set termcolor"
+# LeRobot 0.6.1 as tested here: its transformers (5.5; the image's is newer, and transformers checks
+# its tokenizers' version at import) with its tokenizers and hub client; draccus for its configs.
+LEROBOT="lerobot draccus mergedeep pyyaml-include toml transformers tokenizers huggingface-hub termcolor"
 pins() {  # the versions installed in a venv, as NAME==VERSION, for the names given
     local venv=$1
     shift
@@ -37,7 +40,7 @@ download() {
 TYRO="tyro docstring-parser typeguard shtab"  # stepnft's command line: both parts
 case $PART in
     core) download $(pins .venv $MAIN) ;;
-    vla) download $(pins .venv $TYRO) $(pins .venv-lerobot $(echo $LEROBOT | tr '\n' ' ')) ;;
+    vla) download $(pins .venv $TYRO) $(pins .venv-lerobot $(echo $LEROBOT | tr '\n' ' ') gymnasium farama-notifications) ;;
     *) echo "gpu_carry.sh: PART is core or vla" >&2; exit 2 ;;
 esac
 cache=$(ls -d runs/*/lang_cache 2>/dev/null | head -n 1 || true)

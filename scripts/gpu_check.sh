@@ -12,10 +12,12 @@
 # Parts, in priority order: (a) the core unit tests on the machine's CPU (GPU hidden: a check of
 # its python and torch), (b) the CUDA tests of tests/test_devices.py and tests/policies/test_memory.py
 # (bf16 on CUDA), (c) benchmarks/compute.py on cpu and cuda, (d) the cost table of a full-size
-# SmolVLA on cuda (benchmarks/vla_compute.py; needs LeRobot: its wheel and the pure-Python ones
-# it needs beyond the machine's torch and transformers in CARRY/whl, else the step says what is
-# missing), (e) MetaWorld camera rollouts on 16 worker processes rendering through EGL
-# (benchmarks/render_throughput.py). About 8 minutes in all; each step has its own limit.
+# SmolVLA on cuda (benchmarks/vla_compute.py; needs LeRobot 0.6: its wheel and the ones it needs
+# beyond the machine's torch in CARRY/whl, else the step says what is missing), (d2) π0 at full
+# size (3.5 B) in bf16 on cuda: π-StepNFT and PPO updates, expert-only, checkpointed and LoRA,
+# two timed updates of 8 policy calls each after a warm-up, (e) MetaWorld camera rollouts on 16
+# worker processes rendering through EGL (benchmarks/render_throughput.py). About 12 minutes in
+# all; each step has its own limit.
 set +e
 CARRY=${1:-.gpucarry}
 OUT=${OUT:-/tmp/gpu_check}
@@ -26,9 +28,9 @@ mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 PYTHONPATH=$SITE:$PWD
 : > "$OUT/steps.txt"
 
-PARTS=${PARTS:-setup core_tests cuda_tests compute vla_compute render}
+PARTS=${PARTS:-setup core_tests cuda_tests compute vla_compute vla_pi0 render}
 # Two device calls where one carry would pass 64 MiB (scripts/gpu_carry.sh): PARTS="setup core_tests
-# cuda_tests compute render" with the core carry, then PARTS="setup vla_compute" with the vla one.
+# cuda_tests compute render" with the core carry, then PARTS="setup vla_compute vla_pi0" with the vla one.
 
 step() {  # step NAME SECONDS COMMAND...: run with a time limit into $OUT/NAME.log, note rc and time
     local name=$1 limit=$2 start=$SECONDS
@@ -67,6 +69,9 @@ rm -f "$OUT/compute/compute.md"  # the table is in compute.log (8 files come bac
 # (d) a full-size SmolVLA (random weights, offline configuration): update cost per algorithm and precision.
 step vla_compute 200 $PY benchmarks/vla_compute.py --device cuda --calls 8 --reps 2 --sample-calls 8 --threads 4 \
     --out "$OUT/vla_compute"
+# (d2) π0 at full size in bf16 (random weights, offline configuration): π-StepNFT and PPO updates.
+step vla_pi0 300 $PY benchmarks/vla_compute.py --model pi0 --device cuda --precisions bf16 --algos stepnft ppo \
+    --calls 8 --reps 2 --sample-calls 8 --threads 8 --out "$OUT/vla_compute_pi0"
 # (e) the camera loop's simulator side on 16 processes, rendering through the GPU's EGL.
 step render 120 env MUJOCO_GL=egl $PY benchmarks/render_throughput.py --workers 16 --envs-per-task 8 --seconds 20 \
     --out "$OUT/render"
