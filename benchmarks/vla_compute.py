@@ -93,14 +93,15 @@ def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0, pre
 
     chunk, steps = CHUNK[size]
     side = SIZES["smolvla" if size == "full" else size]["vision"]["image_size"] if model == "smolvla" else PI_SIZES[size][2]
-    # A bf16 row builds its model in bfloat16 from the start: π0's 3.5 B parameters are 14 GB in
-    # float32, a peak that building in float32 and casting would add; the trained parameters then
-    # go back to float32, as set_precision keeps them.
+    # A bf16 row builds its model in bfloat16 from the start (π0: LeRobot's dtype too): π0's 3.5 B
+    # parameters are 14 GB in float32, a peak that building in float32 and casting would add; the
+    # trained parameters then go back to float32, as set_precision keeps them.
     default = torch.get_default_dtype()
     torch.set_default_dtype(torch.bfloat16 if precision == "bf16" else torch.float32)
     try:
         policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
-                                  image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size)
+                                  image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size,
+                           dtype="bfloat16" if precision == "bf16" else "float32")
     finally:
         torch.set_default_dtype(default)
     for param in policy.parameters():
@@ -185,7 +186,7 @@ def one(args) -> dict:
             "update_steps": metrics.get("losses/update_steps"), "skipped_nonfinite": metrics.get("losses/skipped_nonfinite")}
     if args.algo == "stepnft" and not args.checkpointing:  # sampling does not depend on the algorithm
         policy.eval()
-        for cache in (True, False):
+        for cache in (True, False) if args.model == "smolvla" else (True,):  # π0 / π0.5 always cache their prefix
             policy.config.prefix_cache = cache
             raw = raw_obs(args.sample_calls, side, seed=2)
             obs = policy.prepare(raw)

@@ -168,9 +168,12 @@ def build_smolvla(spec: NewVLA, vlm_dir: str | Path):
                                 None, None)
 
 
-def build_pi(spec: NewVLA, vlm_dir: str | Path):
+def build_pi(spec: NewVLA, vlm_dir: str | Path, dtype: str = "float32"):
     """A new, randomly initialised π0 / π0.5 adapter as ``spec`` describes (LeRobot 0.6), its
-    tokenizer written to ``vlm_dir`` (not saved: see :func:`new_vla`)."""
+    tokenizer written to ``vlm_dir`` (not saved: see :func:`new_vla`). ``dtype`` is LeRobot's
+    build precision: ``bfloat16`` casts the model (but its vision tower and norms) to bfloat16
+    instead of float32, so a full-size build never holds the 14 GB float32 copy (the cost
+    benchmark's bf16 rows); the trained parameters are then bfloat16 too, until cast back."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
 
@@ -197,7 +200,7 @@ def build_pi(spec: NewVLA, vlm_dir: str | Path):
         adapter, prompt = PI05Adapter, 64 + 4 * spec.state_dim
     pad = 32 if size == "full" else 0  # LeRobot pads state and action to 32; the tiny model does not pad
     lerobot_cfg = config_class(
-        paligemma_variant=vlm_variant, action_expert_variant=expert_variant, dtype="float32",
+        paligemma_variant=vlm_variant, action_expert_variant=expert_variant, dtype=dtype,
         chunk_size=spec.chunk_size, n_action_steps=spec.n_exec, num_inference_steps=spec.num_steps,
         max_state_dim=max(pad, spec.state_dim), max_action_dim=max(pad, spec.action_dim),
         image_resolution=(side, side), tokenizer_max_length=prompt, input_features=features,
@@ -207,11 +210,12 @@ def build_pi(spec: NewVLA, vlm_dir: str | Path):
                          str(vlm_dir.resolve()))
 
 
-def build_vla(spec: NewVLA, vlm_dir: str | Path):
-    """A new, randomly initialised adapter of ``spec.model`` (not saved: see :func:`new_vla`)."""
+def build_vla(spec: NewVLA, vlm_dir: str | Path, dtype: str = "float32"):
+    """A new, randomly initialised adapter of ``spec.model`` (not saved: see :func:`new_vla`);
+    ``dtype`` as :func:`build_pi`'s (SmolVLA is built in float32)."""
     if spec.model not in MODELS:
         raise ValueError(f"unknown LeRobot model {spec.model!r}; choose one of {', '.join(MODELS)}")
-    return build_smolvla(spec, vlm_dir)
+    return build_pi(spec, vlm_dir, dtype) if spec.model != "smolvla" else build_smolvla(spec, vlm_dir)
 
 
 def new_vla(spec: NewVLA):
