@@ -383,6 +383,40 @@ def test_a_grpo_update_shares_each_calls_prefix_and_trains_the_expert(tiny_folde
 
 
 @needs_lerobot
+def test_every_variant_of_stepnft_compare_updates_each_model(tiny_folder):
+    """Every algorithm and ablation `stepnft compare` knows (π-StepNFT's ablations, PPO, GRPO and
+    theirs) samples a batch as its own rollout spec asks (noise, stochastic steps, recorded steps,
+    mean correction, groups) and takes one finite update on each VLA."""
+    from stepnft.algos.base import make_algorithm
+    from stepnft.algos.stepnft import StepNFTConfig
+    from stepnft.algos.variants import VARIANTS, variant_config
+    from stepnft.batch import Batch
+
+    policy = load(tiny_folder)
+    base = StepNFTConfig(lr=1e-3, minibatch_size=24, update_epochs=1)
+    calls, horizon = 8, policy.chunk_shape[0]
+    raw = raw_obs(calls)
+    for name in VARIANTS:
+        learner = make_algorithm(variant_config(name, base), policy, iterations=1,
+                                 generator=torch.Generator().manual_seed(0))
+        spec = learner.rollout
+        sample = learner.acting_policy().sample(
+            policy.processor(raw), noise_level=spec.noise_level, generator=torch.Generator().manual_seed(1),
+            stochastic_steps=spec.stochastic_steps, keep_path=spec.record_steps == "all",
+            mean_correction=spec.mean_correction)
+        success = torch.arange(calls) % 2 == 0
+        batch = Batch(episode_success=success, episode_task=torch.zeros(calls, dtype=torch.int64),
+                      episode_length=torch.full((calls,), horizon),
+                      episode_seed=torch.arange(calls) // max(spec.group_size, 1), obs=raw, actions=sample.actions,
+                      mask=torch.ones(calls, horizon, dtype=torch.bool), reward=success.float() * torch.rand(calls),
+                      done=torch.ones(calls, dtype=torch.bool), episode=torch.arange(calls),
+                      **sample.recorded_steps(every_step=spec.record_steps == "all"))
+        metrics = learner.update(batch)
+        assert metrics["losses/skipped_nonfinite"] == 0, name
+        assert all(np.isfinite(v) for k, v in metrics.items() if k.startswith("losses/") and isinstance(v, float)), name
+
+
+@needs_lerobot
 def test_select_context_gives_each_step_its_calls_prefix(tiny_folder):
     """Rows of the KV cache and masks (without the cache: of the observations): denoising against
     a selected prefix is denoising each call against its own."""
