@@ -44,8 +44,8 @@ import provenance
 
 ALGOS = ("stepnft", "ppo", "grpo")
 LORA_RANK = 16
-CASES = [(algo, "bf16", False, 0) for algo in ALGOS] + [(algo, "bf16", True, 0) for algo in ALGOS] + \
-        [(algo, "bf16", True, LORA_RANK) for algo in ALGOS] + [(algo, "fp32", False, 0) for algo in ALGOS]
+CASES = [(algo, "bf16", False, 0) for algo in ALGOS] + [(algo, "bf16", True, LORA_RANK) for algo in ALGOS] + \
+        [(algo, "bf16", True, 0) for algo in ALGOS] + [(algo, "fp32", False, 0) for algo in ALGOS]
 """(algorithm, precision, gradient checkpointing, LoRA rank) of the cost table, in its row order:
 rank 0 trains the action expert (``train: expert``), a rank trains LoRA adapters on the VLM's
 attention and the expert (``train: vlm``). fp32 last: at π0's size it may not fit what is free."""
