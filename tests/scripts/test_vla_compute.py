@@ -17,10 +17,22 @@ def row(algo, precision, checkpointing, seconds, memory, weights=100.0):
             "peak_MB": memory + 1000, "weights_MB": weights}
 
 
-def test_every_algorithm_is_measured_in_every_precision(vla_compute):
+def test_every_algorithm_is_measured_in_every_precision_with_checkpointing_and_lora(vla_compute):
     cases = set(vla_compute.CASES)
-    assert {(a, p, False) for a in vla_compute.ALGOS for p in ("fp32", "bf16")} <= cases
-    assert {(a, "bf16", True) for a in vla_compute.ALGOS} <= cases
+    assert len(cases) == len(vla_compute.CASES)
+    assert {(a, p, False, 0) for a in vla_compute.ALGOS for p in ("fp32", "bf16")} <= cases
+    assert {(a, "bf16", True, 0) for a in vla_compute.ALGOS} <= cases
+    assert {(a, "bf16", True, vla_compute.LORA_RANK) for a in vla_compute.ALGOS} <= cases
+    assert vla_compute.LORA_RANK > 0
+
+
+def test_lora_rows_are_named_and_left_out_of_the_expert_only_ratios(vla_compute):
+    rows = [row("stepnft", "bf16", False, 1.0, 400.0), row("ppo", "bf16", False, 3.0, 1000.0),
+            row("stepnft", "bf16", True, 2.0, 100.0) | {"lora_rank": 16, "trained_M": 12.5}]
+    r = vla_compute.ratios(rows)
+    assert r["stepnft_vs_ppo_throughput_bf16"] == pytest.approx(3.0)
+    assert "checkpointing_vs_not_update_memory_stepnft" not in r  # the only checkpointed row is a LoRA one
+    assert "LoRA 16 + expert (12.5 M)" in vla_compute.table(rows)
 
 
 def test_ratios_read_the_targets_the_right_way_round(vla_compute):
