@@ -16,7 +16,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
-EXTRAS=${STEPNFT_EXTRAS:-test,video}
+EXTRAS=${STEPNFT_EXTRAS:-test,video,datasets}
 LEROBOT=0
 MANISKILL=0
 for arg in "$@"; do

@@ -336,14 +336,14 @@ def _renders(cfg) -> bool:
 
 def cmd_demos(argv: list[str]) -> int:
     from stepnft.data.demos import check_task_episodes, generate_demos
-    from stepnft.envs import get_simulator
+    from stepnft.envs import simulator_for
 
     from stepnft.config import DemosCommand
 
     args = _parse(DemosCommand, argv, DemosCommand(), "stepnft demos")
     _named_folders(("--demos.path", args.demos.path))
     _check_rendering(args.env, bool(args.env.cameras))
-    sim = get_simulator(args.env.name)
+    sim = simulator_for(args.env)
     tasks = sim.validate_tasks(args.env.tasks)
     check_task_episodes(args.demos, sim)
     episodes = max(args.demos.count(t) for t in tasks)
@@ -380,7 +380,7 @@ def cmd_train(argv: list[str]) -> int:
 
 
 def cmd_eval(argv: list[str]) -> int:
-    from stepnft.envs import get_simulator
+    from stepnft.envs import simulator_for
     from stepnft.envs.base import RenderingError
     from stepnft.policies.base import load_policy
     from stepnft.runs import check_folder, write_atomic
@@ -392,7 +392,7 @@ def cmd_eval(argv: list[str]) -> int:
 
     args = _parse(EvalCommand, argv, EvalCommand(), "stepnft eval")
     device = resolve_device(args.device)
-    sim = get_simulator(args.env.name)
+    sim = simulator_for(args.env)
     args.env.tasks = sim.validate_tasks(args.env.tasks)
     suites = check_suites(args.suite)
     _check_rendering(args.env, bool(args.video_dir or args.env.cameras or _policy_cameras(args.policy)))

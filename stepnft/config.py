@@ -47,8 +47,9 @@ class EnvConfig(Settings):
 
     name: str = "metaworld"
     """Simulator: metaworld (MetaWorld v3, the default), bandit (a toy for tests), libero
-    (LIBERO, the optional extra stepnft[libero]; docs/libero.md) or maniskill (ManiSkill3, the
-    optional extra stepnft[maniskill]; docs/maniskill.md)."""
+    (LIBERO, the optional extra stepnft[libero]; docs/libero.md), maniskill (ManiSkill3, the
+    optional extra stepnft[maniskill]; docs/maniskill.md), gym (any Gymnasium env: --env.id;
+    docs/gym.md) or one an installed plugin registers (docs/extending.md)."""
     tasks: list[str] = field(default_factory=lambda: list(DEFAULT_TASKS))
     """Task names (space- or comma-separated); one multi-task policy serves all of them."""
     envs_per_task: Annotated[int, Range(ge=1, le=4096)] = 4
@@ -80,6 +81,26 @@ class EnvConfig(Settings):
     sparse, 1 while the goal holds); shaped: a reward that measures progress, what π-StepNFT's
     labels: progress and PPO's reward: shaped read (MetaWorld, ManiSkill: their own; LIBERO: a
     reach-grasp-lift-place reward from the objects of interest, pick-and-place tasks only)."""
+    id: list[str] = field(default_factory=list)
+    """env.name gym: the Gymnasium env of each task, a registered id (FetchPush-v4) or
+    module:Env-v0 (its module imported first, which registers it). Each task is named by its
+    id's last part (PushT-v0): env.tasks then follows from env.id."""
+    make_kwargs: dict[str, bool | Annotated[int, Range(ge=-10**9, le=10**9)] | Annotated[float, Range(ge=-1e9, le=1e9)]
+                      | str] = field(default_factory=dict)
+    """env.name gym: keyword arguments of gymnasium.make for every id (e.g. obs_type: state)."""
+    state_keys: list[str] = field(default_factory=list)
+    """env.name gym: the entries of a Dict observation that make the policy's state, flattened
+    and concatenated in this order (nested ones as a/b); empty: a Box observation whole, or
+    every vector entry of a Dict one. Camera images are the env.cameras entries (or render)."""
+    success: str = "auto"
+    """env.name gym: what success is: auto (info["is_success"], else info["success"]), another
+    info key, or module:function called as function(obs, info) -> bool on the raw observation."""
+    instructions: dict[str, str] = field(default_factory=dict)
+    """env.name gym: the instruction of each task (by task name; default: the task's name)."""
+    expert: str | None = None
+    """env.name gym: module:factory of a scripted expert, factory(task, seed) returning a
+    callable raw_obs -> action (in the env's units) that records the demonstrations; without
+    one, --demos.path must hold a LeRobot dataset folder or HDF5 demonstrations."""
     randomize: list[str] = field(default_factory=list)
     """Perturbations randomised in every training episode, from their training ranges (never
     the held-out ones the suites use): suite names (vision, semantic, execution) or single
@@ -89,6 +110,7 @@ class EnvConfig(Settings):
     def check(self) -> None:
         if self.name not in SIMULATORS:
             raise self.fail(f"{{name}} must be one of {', '.join(SIMULATORS)}", self.name)
+        self._check_gym()
         info = SIMULATORS[self.name]
         if self.max_episode_steps > info.max_episode_steps:
             raise self.fail(f"{{max_episode_steps}} must be in [1, {info.max_episode_steps}] for {self.name}",
@@ -107,6 +129,35 @@ class EnvConfig(Settings):
             raise self.fail(f"{{randomize}}: {err}") from None
         if not self.cameras and any(FAMILY[n] == "vision" for n in self.randomize):
             raise self.fail("{randomize} vision perturbations change only camera images: set {cameras} too")
+
+
+    GYM_FIELDS: ClassVar[tuple[str, ...]] = ("id", "make_kwargs", "state_keys", "success", "instructions", "expert")
+
+    def _check_gym(self) -> None:
+        """``env.name: gym`` takes its tasks from ``env.id``; the other simulators take no gym settings."""
+        if self.name != "gym":
+            given = [n for n in self.GYM_FIELDS if getattr(self, n) != getattr(EnvConfig, n, None)
+                     and getattr(self, n) not in ([], {})]
+            if given:
+                raise self.fail(f"{{{given[0]}}} is a setting of env.name gym (any Gymnasium env), not of {self.name}")
+            return
+        from stepnft.envs.gym import task_name
+
+        if not self.id:
+            raise self.fail("{name} gym needs the Gymnasium env: give {id} (a registered id or module:Env-v0)")
+        names = [task_name(i) for i in self.id]
+        if len(set(names)) != len(names):
+            raise self.fail("{id} entries must have distinct names (the part after the last / or :)", self.id)
+        if self.tasks not in (names, DEFAULT_TASKS):
+            raise self.fail(f"{{tasks}} of env.name gym are named by {{id}}: leave {{tasks}} out (they are {names})",
+                            self.tasks)
+        self.tasks = names
+        unknown = sorted(set(self.instructions) - set(names))
+        if unknown:
+            raise self.fail(f"{{instructions}} names {', '.join(unknown)}, not a task of {{id}} ({', '.join(names)})")
+        for target in filter(None, (self.expert, self.success if ":" in self.success else None)):
+            if not re.fullmatch(r"[\w.]+:[\w.]+", target):
+                raise self.fail("{expert} and {success} take module:name", target)
 
 
 @dataclass

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs import env_options, make_vec_env, simulator_for
 from stepnft.envs.perturbations import OOD_SUITES, SUITES, Perturbations
 from stepnft.evaluate import evaluate_policy, format_ci, format_table, record_videos
 from stepnft.names import split_names
@@ -58,7 +58,7 @@ def check_suites(suites: Sequence[str]) -> list[str]:
 def env_for_policy(env_cfg, policy_config):
     """``env_cfg`` with the observations a saved policy needs: its cameras (when the config
     names none) and the state observation of its size."""
-    sim = get_simulator(env_cfg.name)
+    sim = simulator_for(env_cfg)
     if env_cfg.cameras and env_cfg.cameras != policy_config.cameras:
         raise ValueError(f"the policy sees cameras {policy_config.cameras}, env.cameras is {env_cfg.cameras}: "
                          "drop --env.cameras (the policy's are used) or give the same list")
@@ -160,7 +160,7 @@ def record_suite_videos(policy: Policy, env_cfg, suite: str, out_dir: str | Path
     """Film ``episodes`` ODE episodes per task under ``suite`` (the same episodes as
     :func:`evaluate_suite`'s first ones) into ``out_dir``."""
     env_cfg = env_for_policy(env_cfg, policy.config)
-    sim = get_simulator(env_cfg.name)
+    sim = simulator_for(env_cfg)
     perturbations = suite_perturbations(suite)
     options = env_options(env_cfg, perturbations)
     variants = [sim.instruction_variants(t, options.get("perturbations")) for t in env_cfg.tasks]

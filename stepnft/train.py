@@ -31,7 +31,7 @@ from stepnft.checkpoint import load_checkpoint, save_checkpoint
 from stepnft.config import TrainConfig, load_config, save_config, to_dict
 from stepnft.data.demos import check_task_episodes, load_or_generate_demos
 from stepnft.devices import resolve_device
-from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs import env_options, make_vec_env, simulator_for
 from stepnft.envs.base import RenderingError
 from stepnft.evaluate import evaluate_policy, format_table, record_videos, tasks_below
 from stepnft.policies.base import Policy, load_policy, load_policy_config, non_finite, non_finite_samples, probe_rows
@@ -377,7 +377,7 @@ def _start_run(cfg: TrainConfig, stack: ExitStack, kind: str, resume: bool = Fal
     fails before its first checkpoint (or, for SFT, before it finishes), and an empty one is
     emptied again, so a failed start leaves nothing behind. Returns ``(run_dir, simulator, tasks, collector)``."""
     resolve_device(cfg.device)  # before anything is created: no CUDA here is one line, exit code 2
-    sim = get_simulator(cfg.env.name)
+    sim = simulator_for(cfg.env)
     tasks = sim.validate_tasks(cfg.env.tasks)
     check_task_episodes(cfg.demos, sim)
     state_dim = sim.state_dim_for(cfg.env.state_obs)

@@ -125,7 +125,7 @@ def test_comma_separated_tasks_work_everywhere():
     (["eval", "--env.envs-per-task", "0"], "--env.envs-per-task must be an integer in [1, 4096], got 0"),
     (["eval", "--device", "gpu"], "--device must be cpu, cuda or cuda:N, got 'gpu'"),
     (["train", "--algo.name", "dqn"], "--algo.name must be one of stepnft, ppo, grpo, got 'dqn'"),
-    (["train", "--env.name", "gazebo"], "--env.name must be one of metaworld, bandit, libero, maniskill, got 'gazebo'"),
+    (["train", "--env.name", "gazebo"], "--env.name must be one of metaworld, bandit, libero, maniskill, gym, got 'gazebo'"),
     (["train", "--algo.sde-steps", "one"], "--algo.sde-steps=one needs --algo.record-steps=one"),
     (["train", "--algo.lr", "inf"], "--algo.lr must be a finite number in (0, 1], got inf"),
     (["train", "--algo.noise-level", "1e6"], "--algo.noise-level must be a finite number in [0, 10], got 1000000.0"),

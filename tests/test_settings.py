@@ -87,7 +87,7 @@ def test_every_bad_value_is_a_value_error_naming_its_setting(cls, key, value, ex
     (StepNFTConfig, {"name": "ppo"}, "algo.name must be stepnft for StepNFTConfig, got 'ppo'"),
     (EvalConfig, {"validation_seed": 50}, "eval.validation_seed (50) must be >= eval.seed + eval.episodes (100)"),
     (EnvConfig, {"max_episode_steps": 501}, "env.max_episode_steps must be in [1, 500] for metaworld, got 501"),
-    (EnvConfig, {"name": "gazebo"}, "env.name must be one of metaworld, bandit, libero, maniskill, got 'gazebo'"),
+    (EnvConfig, {"name": "gazebo"}, "env.name must be one of metaworld, bandit, libero, maniskill, gym, got 'gazebo'"),
     (EnvConfig, {"randomize": ["lighting"]}, "env.randomize vision perturbations change only camera images"),
     (EnvConfig, {"name": "bandit", "tasks": ["bandit"], "max_episode_steps": 8, "reward": "shaped"},
      "env.reward shaped: bandit's reward is success only and it has no shaped option; use native, got 'shaped'"),

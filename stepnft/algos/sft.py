@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from stepnft.algos.base import RunDiverged
 from stepnft.data.demos import DemoEpisode, demos_to_chunks, load_or_generate_demos
 from stepnft.devices import to_device
-from stepnft.envs import get_simulator
+from stepnft.envs import simulator_for
 from stepnft.losses import flow_matching_loss
 from stepnft.policies.base import Policy, load_policy, make_policy, non_finite_samples, probe_rows
 from stepnft.policies.vision import random_shift
@@ -126,7 +126,7 @@ def sft_stage(env_cfg, demos_cfg, policy_cfg, sft_cfg: SFTConfig, *, seed: int, 
     env's (default: the registered one). ``episodes``: the demonstrations, if already loaded
     (:func:`stepnft.data.demos.load_or_generate_demos`). The policy trains, and is returned, on
     ``device``, in ``precision`` and with ``gradient_checkpointing`` (:class:`Policy`'s memory settings)."""
-    simulator = simulator or get_simulator(env_cfg.name)
+    simulator = simulator or simulator_for(env_cfg)
     if episodes is None:
         episodes = load_or_generate_demos(demos_cfg, env_cfg, simulator, log)
     policy = load_policy(init) if init else make_policy(policy_cfg)

@@ -16,7 +16,7 @@ from stepnft.algos.variants import variant_config
 from stepnft.compare.command import CompareCommand
 from stepnft.config import TrainConfig, from_dict, load_config, to_dict
 from stepnft.data.demos import check_task_episodes
-from stepnft.envs import get_simulator
+from stepnft.envs import simulator_for
 from stepnft.runs import check_folder, write_atomic
 
 SFT = "sft"
@@ -51,7 +51,7 @@ def comparison_config(base: TrainConfig, cmd: CompareCommand) -> TrainConfig:
     except ValueError as err:
         raise ValueError(f"{err} (--tasks, --env-steps and --eval-episodes set env.tasks, env_step_budget and "
                          "eval.episodes)") from None
-    sim = get_simulator(cfg.env.name)
+    sim = simulator_for(cfg.env)
     sim.validate_tasks(cfg.env.tasks)
     check_task_episodes(cfg.demos, sim)
     if cfg.env_step_budget is None:

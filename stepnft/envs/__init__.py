@@ -51,6 +51,7 @@ SIMULATORS: dict[str, SimulatorInfo] = PluginRegistry("stepnft.simulators", {
     "bandit": SimulatorInfo("stepnft.envs.bandit:Bandit", 64, ("bandit",), "sparse"),
     "libero": SimulatorInfo("stepnft.envs.libero:LIBERO", 520, ("libero_spatial",), "sparse", True, opengl=True),
     "maniskill": SimulatorInfo("stepnft.envs.maniskill:ManiSkill", 500, ("PickCube-v1", "PushCube-v1")),
+    "gym": SimulatorInfo("stepnft.envs.gym:GymSimulator", 10**5, ()),
 }, load=True, check=_check_info)
 """Registered simulators by config name (``env.name``): stepnft's own and those of installed
 packages (entry-point group ``stepnft.simulators``, ``stepnft.plugins``)."""
@@ -74,6 +75,12 @@ def get_simulator(name: str):
     return getattr(module, cls)()
 
 
+def simulator_for(env_cfg):
+    """The simulator an :class:`~stepnft.config.EnvConfig` runs, set up by it
+    (``Simulator.configured``: ``env.name: gym`` builds one env per task to read its sizes)."""
+    return get_simulator(env_cfg.name).configured(env_cfg)
+
+
 RENDERING_ENV_VARS = ("MUJOCO_GL", "PYOPENGL_PLATFORM")
 """Environment variables that choose how the simulators render offscreen (MuJoCo's GL backend);
 processes started elsewhere (Ray workers) get the driver's."""
@@ -86,7 +93,7 @@ def make_vec_env(env_cfg, n_exec: int, seed: int, perturbations=None, sub_envs=N
     randomisation (``env.randomize``), e.g. with a suite's held-out perturbations;
     ``sub_envs``: only those sub-envs (a remote worker's share, see ``Simulator.make_vec_env``)."""
     backend = {} if env_cfg.sim_backend == "cpu" else {"sim_backend": env_cfg.sim_backend}  # ManiSkill's GPU physics
-    return get_simulator(env_cfg.name).make_vec_env(
+    return simulator_for(env_cfg).make_vec_env(
         env_cfg.tasks, env_cfg.envs_per_task, n_exec, env_cfg.max_episode_steps,
         terminate_on_success=env_cfg.terminate_on_success, seed=seed, num_workers=env_cfg.num_workers,
         sub_envs=sub_envs, **backend, **env_options(env_cfg, perturbations))

@@ -82,6 +82,10 @@ class Expert(ABC):
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Action float [A] (clipped to [-1, 1] by the caller)."""
 
+    def attach(self, env: gym.Env) -> None:
+        """The chunk env the expert acts in, given by the recorder before its first reset (an
+        expert that reads more than the observation, e.g. a Gymnasium env's raw one); default: nothing."""
+
 
 class Simulator(ABC):
     """One simulator: its tasks, dimensions and env factories."""
@@ -96,6 +100,12 @@ class Simulator(ABC):
     action_dim: ClassVar[int]
     control_hz: ClassVar[float]
     """Env steps per simulated second (the frame rate of videos)."""
+
+    def configured(self, env_cfg) -> "Simulator":
+        """This simulator as ``env_cfg`` (an :class:`~stepnft.config.EnvConfig`) sets it up: itself,
+        for simulators whose tasks and sizes are their own; ``env.name: gym`` reads its env ids,
+        keys and success signal there (``stepnft.envs.simulator_for``)."""
+        return self
 
     @abstractmethod
     def task_names(self) -> list[str]:

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from stepnft.batch import Batch
-from stepnft.envs import RENDERING_ENV_VARS, env_options, get_simulator, make_vec_env
+from stepnft.envs import RENDERING_ENV_VARS, env_options, make_vec_env, simulator_for
 from stepnft.envs.base import lane_ids
 from stepnft.envs.sharded import shard_ranges
 from stepnft.policies.base import Policy
@@ -176,7 +176,7 @@ class RayCollector(Collector):
 
     def __init__(self, env_cfg, n_exec: int, seed: int, ray_cfg, num_threads: int = 1):
         ray = self._ray = import_ray()
-        layout = get_simulator(env_cfg.name).vec_env_layout(env_cfg.tasks, env_cfg.envs_per_task,
+        layout = simulator_for(env_cfg).vec_env_layout(env_cfg.tasks, env_cfg.envs_per_task,
                                                             env_options(env_cfg).get("perturbations"))
         num_envs = len(layout["task_ids"])
         if ray_cfg.workers > num_envs:
