@@ -229,6 +229,8 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (n_exec, self.actions.dim), np.float32)
         self.raw_obs = None
         """The env's own last observation (what a user's expert reads)."""
+        self.episodes = 0
+        """Episodes begun (an expert's cue to start afresh)."""
         self._obs: dict | None = None
 
     # The collector saves and restores every sub-env's stream (exact resume): the Gymnasium env's.
@@ -256,6 +258,7 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
         raw, _ = self._env.reset(seed=seed)
         self._obs = self._observe(raw)
         self._start_episode()
+        self.episodes += 1
         return {k: v.copy() for k, v in self._obs.items()}, self._info(0)
 
     def step(self, chunk: np.ndarray):
@@ -292,10 +295,12 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
 
 class GymExpert(Expert):
     """A user's expert (``env.expert``) acting on the raw observation of the env it is attached
-    to, its actions mapped to the policy's [-1, 1]."""
+    to, its actions mapped to the policy's [-1, 1]. The factory is called anew for every episode
+    (experts often keep a phase), with a seed drawn from (``seed``, episode number)."""
 
-    def __init__(self, act: Callable[[Any], np.ndarray]):
-        self._act, self._env = act, None
+    def __init__(self, factory: Callable[[str, int], Callable[[Any], np.ndarray]], task: str, seed: int):
+        self._factory, self._task, self._seed = factory, task, seed
+        self._env, self._act, self._episode = None, None, None
 
     def attach(self, env: GymChunkEnv) -> None:
         self._env = env
@@ -303,6 +308,10 @@ class GymExpert(Expert):
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         if self._env is None:
             raise RuntimeError("attach the expert to its env first (GymExpert.attach)")
+        if self._episode != self._env.episodes:  # a new episode: a fresh expert
+            self._episode = self._env.episodes
+            seed = int(np.random.SeedSequence([self._seed, self._episode]).generate_state(1)[0])
+            self._act = self._factory(self._task, seed)
         return self._env.actions.to_policy(self._act(self._env.raw_obs))
 
 
@@ -348,8 +357,7 @@ class GymSimulator(Simulator):
             raise ValueError(f"{self.label} {task} has no expert to record demonstrations with: set env.expert to "
                              "module:factory (factory(task, seed) -> callable(obs) -> action), or point --demos.path "
                              "at a LeRobot dataset folder or HDF5 demonstrations")
-        factory = load_object(spec.expert, "env.expert")
-        return GymExpert(factory(task, seed))
+        return GymExpert(load_object(spec.expert, "env.expert"), task, seed)
 
     def has_dataset(self, path) -> bool:
         from stepnft.envs.datasets import dataset_format
