@@ -18,7 +18,7 @@ declared type       accepted value
 ``bool``            True or False
 ``str``             a string
 ``Literal[...]``    one of its values: the choices are never listed again
-``X | None``        None or an X
+``X | None``        None or an X (``X | Y``: the first arm that takes the value)
 ``list[str]``       names: a string or strings, each comma-separated (``stepnft.names``)
 ``tuple[X, Y]``     a sequence of as many values, each checked (stored as a tuple)
 ``dict[str, X]``    a mapping of strings to Xs
@@ -226,8 +226,13 @@ def _checked(value, hint):
     if origin in (Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        (arm,) = [a for a in args if a is not type(None)]
-        value = _checked(value, arm)
+        arms = [a for a in args if a is not type(None)]
+        for arm in arms[:-1]:  # the first arm that takes the value (``bool | int | str``: in that order)
+            try:
+                return _checked(value, arm)
+            except _Mismatch:
+                pass
+        value = _checked(value, arms[-1])
     elif origin is Literal:
         _require(any(type(value) is type(a) and value == a for a in args))
     elif origin is list and args[0] is str:
