@@ -96,12 +96,12 @@ def make_policy(cfg, lang_cache: str):
     """The base config's policy, initialised from seed 0, its instructions bound."""
     import torch
 
-    from stepnft.envs import get_simulator
+    from stepnft.envs import simulator_for
     from stepnft.policies.base import make_policy as build
 
     torch.manual_seed(0)
     policy = build(cfg.policy)
-    sim = get_simulator(cfg.env.name)
+    sim = simulator_for(cfg.env)
     policy.processor.bind_instructions([sim.instruction(t) for t in cfg.env.tasks], lang_cache)
     return policy
 
@@ -270,7 +270,7 @@ def main(argv=None) -> dict:
     from stepnft.algos.variants import VARIANTS
     from stepnft.config import load_config
     from stepnft.devices import resolve_device
-    from stepnft.envs import get_simulator
+    from stepnft.envs import simulator_for
     from stepnft.policies.language import LanguageEncoder
 
     algos = [a.strip() for a in args.algos.split(",") if a.strip()]
@@ -287,7 +287,7 @@ def main(argv=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         lang_cache = args.lang_cache or tmp
         if cfg.policy.lang_dim:  # embed once here: the timed processes read the table from disk
-            sim = get_simulator(cfg.env.name)
+            sim = simulator_for(cfg.env)
             LanguageEncoder(cfg.policy.language_encoder, lang_cache).embed([sim.instruction(t) for t in cfg.env.tasks])
         for device in devices:
             learners += [in_fresh_process(time_learner, a, args, lang_cache, device) for a in algos]

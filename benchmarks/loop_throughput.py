@@ -37,7 +37,7 @@ from provenance import command, commit, cpu, packages
 
 from stepnft.algos.base import make_algorithm
 from stepnft.config import load_config
-from stepnft.envs import env_options, get_simulator, make_vec_env
+from stepnft.envs import env_options, make_vec_env, simulator_for
 from stepnft.policies.base import load_policy
 from stepnft.rollout.allocation import TaskAllocator
 from stepnft.rollout.collector import Collector
@@ -94,7 +94,7 @@ def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episode
 
 def _replay_part(args) -> tuple[float, int]:
     env_cfg, n_exec, part, barrier = args
-    sim = get_simulator(env_cfg.name)
+    sim = simulator_for(env_cfg)
     envs = {task: sim.make_env(env_cfg.tasks[task], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
                                terminate_on_success=env_cfg.terminate_on_success, **env_options(env_cfg))
             for task in {task for task, _, _ in part}}

@@ -238,7 +238,8 @@ def _record_task(sim, task: str, out_dir: Path, bar, *, episodes_per_task: int, 
     camera_options = {"cameras": list(cameras), "image_size": image_size} if cameras else {}
     expert = sim.expert(task, seed)  # first: a simulator without experts says so before building an env
     env = sim.make_env(task, n_exec=1, max_episode_steps=max_episode_steps, **camera_options)
-    expert.attach(env)
+    if hasattr(expert, "attach"):  # an Expert; a duck-typed one with act() alone reads only the observation
+        expert.attach(env)
     # A noise stream per (seed, task), unaffected by which other tasks are generated.
     noise_rng = np.random.default_rng([seed, sim.task_names().index(task)])
     (out_dir / task).mkdir(exist_ok=True)

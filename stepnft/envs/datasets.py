@@ -148,7 +148,8 @@ def load_dataset(path, sim, actions, cameras: Sequence[str] = (), image_size: in
                          "describes the layout") from err
 
 
-def _pick(columns, names: Sequence[str], what: str) -> str:
+def pick_column(columns, names: Sequence[str], what: str) -> str:
+    """The first of ``names`` among ``columns``; a KeyError naming them otherwise."""
     for name in names:
         if name in columns:
             return name
@@ -167,8 +168,8 @@ def _load_lerobot(root: Path, tasks: _Tasks, state_dim: int, action_map, cameras
     if not files:
         raise FileNotFoundError(f"{root}: no parquet files under data/")
     table = pa.concat_tables([pq.read_table(f) for f in files])
-    state_key = _pick(table.column_names, STATE_COLUMNS, "state")
-    action_key = _pick(table.column_names, ACTION_COLUMNS, "action")
+    state_key = pick_column(table.column_names, STATE_COLUMNS, "state")
+    action_key = pick_column(table.column_names, ACTION_COLUMNS, "action")
     features = info.get("features", {})
     image_columns = []
     for camera in cameras:

@@ -39,7 +39,6 @@ period ignored); its instruction then is the benchmark's, like every LIBERO epis
 
 from __future__ import annotations
 
-import io
 import json
 import re
 from collections.abc import Sequence
@@ -47,6 +46,11 @@ from pathlib import Path
 
 import numpy as np
 
+from stepnft.envs.datasets import decode_image as _decode
+from stepnft.envs.datasets import instruction_key as _instruction_key
+from stepnft.envs.datasets import lerobot_tasks as _lerobot_tasks
+from stepnft.envs.datasets import pick_column as _pick
+from stepnft.envs.datasets import views as _views
 from stepnft.envs.episodes import DemoEpisode
 from stepnft.envs.libero.suites import all_tasks
 
@@ -85,20 +89,6 @@ def load_dataset(path: Path, cameras: Sequence[str] = (), image_size: int = 64) 
     except (KeyError, TypeError, IndexError) as err:  # a file in another layout
         raise ValueError(f"{path} is not a LIBERO {kind} dataset ({type(err).__name__}: {err}); "
                          "docs/libero.md describes the layout read") from err
-
-
-def _views(frames: list[np.ndarray], size: int) -> np.ndarray | None:
-    """Per-camera frames uint8 [T, H, W, 3] -> the env's ``image`` layout [T, V, 3, size, size]."""
-    if not frames:
-        return None
-    from PIL import Image
-
-    def fit(frame: np.ndarray) -> np.ndarray:
-        if frame.shape[:2] == (size, size):
-            return frame
-        return np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR))
-
-    return np.stack([np.stack([fit(f) for f in camera]) for camera in frames], axis=1).transpose(0, 1, 4, 2, 3)
 
 
 def _episode(task: str, state: np.ndarray, actions: np.ndarray, successes: np.ndarray, seed: int,
@@ -203,38 +193,6 @@ def write_hdf5(path: Path, task: str, demos: list[dict[str, np.ndarray]]) -> Non
 
 
 # ----------------------------------------------------------------------------- LeRobot
-
-def _lerobot_tasks(root: Path) -> dict[int, str]:
-    """task_index -> instruction."""
-    if (root / "meta" / "tasks.jsonl").is_file():
-        rows = [json.loads(line) for line in (root / "meta" / "tasks.jsonl").read_text().splitlines() if line.strip()]
-        return {int(r["task_index"]): r["task"] for r in rows}
-    import pyarrow.parquet as pq
-
-    table = pq.read_table(root / "meta" / "tasks.parquet").to_pydict()
-    # v3.0 keeps the instruction as the (pandas) index column, named "task" or "__index_level_0__".
-    text = table.get("task") or table.get("__index_level_0__")
-    return {int(i): t for i, t in zip(table["task_index"], text)}
-
-
-def _instruction_key(text: str) -> str:
-    return " ".join(text.lower().strip().rstrip(".").split())
-
-
-def _pick(columns, names: tuple[str, ...], what: str) -> str:
-    for name in names:
-        if name in columns:
-            return name
-    raise KeyError(f"no {what} column (tried {', '.join(names)})")
-
-
-def _decode(cell) -> np.ndarray:
-    from PIL import Image
-
-    if cell.get("bytes") is None:
-        raise ValueError(f"image stored by path only ({cell.get('path')}): images must be embedded in the parquet files")
-    return np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB"))
-
 
 def load_lerobot(root: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
     """The episodes of a LeRobot dataset on disk (module doc: the subset of the format read)."""
