@@ -136,8 +136,9 @@ class EnvConfig(Settings):
     def _check_gym(self) -> None:
         """``env.name: gym`` takes its tasks from ``env.id``; the other simulators take no gym settings."""
         if self.name != "gym":
-            given = [n for n in self.GYM_FIELDS if getattr(self, n) != getattr(EnvConfig, n, None)
-                     and getattr(self, n) not in ([], {})]
+            defaults = {f.name: f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
+                        for f in dataclasses.fields(self) if f.name in self.GYM_FIELDS}
+            given = [n for n in self.GYM_FIELDS if getattr(self, n) != defaults[n]]
             if given:
                 raise self.fail(f"{{{given[0]}}} is a setting of env.name gym (any Gymnasium env), not of {self.name}")
             return

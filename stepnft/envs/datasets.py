@@ -53,18 +53,21 @@ def dataset_format(path) -> str | None:
     return None
 
 
+def resized(frame: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A uint8 [H, W, 3] frame at ``height`` x ``width`` (bilinear; unchanged when it has that size)."""
+    if frame.shape[:2] == (height, width):
+        return frame
+    from PIL import Image
+
+    return np.asarray(Image.fromarray(frame).resize((width, height), Image.BILINEAR))
+
+
 def views(frames: list[np.ndarray], size: int) -> np.ndarray | None:
     """Per-camera frames uint8 [T, H, W, 3] -> the env's ``image`` layout [T, V, 3, size, size]."""
     if not frames:
         return None
-    from PIL import Image
-
-    def fit(frame: np.ndarray) -> np.ndarray:
-        if frame.shape[:2] == (size, size):
-            return frame
-        return np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR))
-
-    return np.stack([np.stack([fit(f) for f in camera]) for camera in frames], axis=1).transpose(0, 1, 4, 2, 3)
+    return np.stack([np.stack([resized(f, size, size) for f in camera]) for camera in frames],
+                    axis=1).transpose(0, 1, 4, 2, 3)
 
 
 def decode_image(cell) -> np.ndarray:
@@ -87,6 +90,46 @@ def lerobot_tasks(root: Path) -> dict[int, str]:
     # v3.0 keeps the instruction as the (pandas) index column, named "task" or "__index_level_0__".
     text = table.get("task") or table.get("__index_level_0__")
     return {int(i): t for i, t in zip(table["task_index"], text)}
+
+
+def read_lerobot(root: Path) -> tuple[dict, dict]:
+    """A LeRobot dataset's ``meta/info.json`` and all its frames as columns (name -> values),
+    after the version check."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    info = json.loads((root / "meta" / "info.json").read_text())
+    version = str(info.get("codebase_version", ""))
+    if not version.startswith(("v2", "v3")):
+        raise ValueError(f"{root}: LeRobot dataset version {version or '?'} is not read (v2.x and v3.0 are)")
+    files = sorted((root / "data").rglob("*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"{root}: no parquet files under data/")
+    return info, pa.concat_tables([pq.read_table(f) for f in files]).to_pydict()
+
+
+def lerobot_image_columns(root: Path, info: dict, columns: dict, cameras: Sequence[tuple[str, Sequence[str]]]
+                          ) -> list[str]:
+    """The image column of each ``(camera, candidate column names)``: the first candidate the
+    dataset has, embedded images (video features are refused: they are not decoded)."""
+    features = info.get("features", {})
+    found_columns = []
+    for camera, names in cameras:
+        found = [n for n in names if n in features or n in columns]
+        if found and features.get(found[0], {}).get("dtype") == "video":
+            raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: use it without cameras")
+        if not found or found[0] not in columns:
+            raise ValueError(f"{root} has no {camera} images (tried {', '.join(names)})")
+        found_columns.append(found[0])
+    return found_columns
+
+
+def lerobot_episodes(columns: dict):
+    """``(episode_index, rows)`` for every episode, its rows in frame order."""
+    episode_ids = np.asarray(columns["episode_index"])
+    order = np.lexsort((np.asarray(columns["frame_index"]), episode_ids))
+    for episode in np.unique(episode_ids):
+        yield int(episode), order[episode_ids[order] == episode]
 
 
 def instruction_key(text: str) -> str:
@@ -126,23 +169,23 @@ def _episode(tasks: _Tasks, task: str, state, actions, successes, seed: int, ima
         seed=seed, images=None if images is None else np.ascontiguousarray(np.concatenate([images, images[-1:]])))
 
 
-def load_dataset(path, sim, actions, cameras: Sequence[str] = (), image_size: int = 64,
+def load_dataset(path, sim, action_maps, cameras: Sequence[str] = (), image_size: int = 64,
                  state_keys: Sequence[str] = ()) -> list[DemoEpisode]:
     """Every demonstration at ``path`` for simulator ``sim`` (its tasks and state size), actions
-    mapped by ``actions`` (the env's :class:`~stepnft.envs.gym.ActionMap`); an HDF5 file without
-    ``obs/state`` has one dataset per ``state_keys`` entry."""
+    mapped by ``action_maps[task]`` (each task's :class:`~stepnft.envs.gym.ActionMap`); an HDF5
+    file without ``obs/state`` has one dataset per ``state_keys`` entry."""
     path = Path(path)
     kind = dataset_format(path)
     if kind is None:
         raise FileNotFoundError(f"no demonstrations at {path}: expected a LeRobot dataset folder (meta/info.json) "
                                 "or *.hdf5 files")
-    missing = next((m for m in ("pyarrow" if kind == "lerobot" else "h5py",) if importlib.util.find_spec(m) is None), None)
-    if missing:
-        raise ValueError(f"reading {path} needs {missing}: pip install \"stepnft[datasets]\"")
+    reader = "pyarrow" if kind == "lerobot" else "h5py"
+    if importlib.util.find_spec(reader) is None:
+        raise ValueError(f"reading {path} needs {reader}: pip install \"stepnft[datasets]\"")
     try:
         if kind == "lerobot":
-            return _load_lerobot(path, _Tasks(sim), sim.state_dim, actions, list(cameras), image_size)
-        return _load_hdf5(path, _Tasks(sim), sim.state_dim, actions, list(cameras), image_size, list(state_keys))
+            return _load_lerobot(path, _Tasks(sim), sim.state_dim, action_maps, list(cameras), image_size)
+        return _load_hdf5(path, _Tasks(sim), sim.state_dim, action_maps, list(cameras), image_size, list(state_keys))
     except (KeyError, TypeError, IndexError) as err:  # a file in another layout
         raise ValueError(f"{path} is not a {kind} dataset this reads ({type(err).__name__}: {err}); docs/gym.md "
                          "describes the layout") from err
@@ -156,51 +199,30 @@ def pick_column(columns, names: Sequence[str], what: str) -> str:
     raise KeyError(f"no {what} column (tried {', '.join(names)})")
 
 
-def _load_lerobot(root: Path, tasks: _Tasks, state_dim: int, action_map, cameras: list[str], image_size: int):
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    info = json.loads((root / "meta" / "info.json").read_text())
-    version = str(info.get("codebase_version", ""))
-    if not version.startswith(("v2", "v3")):
-        raise ValueError(f"{root}: LeRobot dataset version {version or '?'} is not read (v2.x and v3.0 are)")
-    files = sorted((root / "data").rglob("*.parquet"))
-    if not files:
-        raise FileNotFoundError(f"{root}: no parquet files under data/")
-    table = pa.concat_tables([pq.read_table(f) for f in files])
-    state_key = pick_column(table.column_names, STATE_COLUMNS, "state")
-    action_key = pick_column(table.column_names, ACTION_COLUMNS, "action")
-    features = info.get("features", {})
-    image_columns = []
-    for camera in cameras:
-        names = [f"observation.images.{camera.replace('/', '.')}", *(["observation.image"] if len(cameras) == 1 else [])]
-        found = [n for n in names if n in features or n in table.column_names]
-        if found and features.get(found[0], {}).get("dtype") == "video":
-            raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: use it without cameras")
-        if not found or found[0] not in table.column_names:
-            raise ValueError(f"{root} has no {camera} images (tried {', '.join(names)})")
-        image_columns.append(found[0])
-    instructions = lerobot_tasks(root) if (root / "meta").is_dir() and any(
-        (root / "meta" / f).is_file() for f in ("tasks.jsonl", "tasks.parquet")) else {}
-    columns = table.to_pydict()
-    episode_ids = np.asarray(columns["episode_index"])
-    order = np.lexsort((np.asarray(columns["frame_index"]), episode_ids))
+def _load_lerobot(root: Path, tasks: _Tasks, state_dim: int, action_maps, cameras: list[str], image_size: int):
+    info, columns = read_lerobot(root)
+    state_key = pick_column(columns, STATE_COLUMNS, "state")
+    action_key = pick_column(columns, ACTION_COLUMNS, "action")
+    image_columns = lerobot_image_columns(root, info, columns, [
+        (c, [f"observation.images.{c.replace('/', '.')}", *(["observation.image"] if len(cameras) == 1 else [])])
+        for c in cameras])
+    has_tasks = any((root / "meta" / f).is_file() for f in ("tasks.jsonl", "tasks.parquet"))
+    instructions = lerobot_tasks(root) if has_tasks else {}
     episodes = []
-    for episode in np.unique(episode_ids):
-        rows = order[episode_ids[order] == episode]
+    for episode, rows in lerobot_episodes(columns):
         text = instructions.get(int(columns["task_index"][rows[0]])) if "task_index" in columns else None
         task = tasks.find(text, f"{root} episode {episode}")
         state = [columns[state_key][i] for i in rows]
-        acts = action_map.to_policy(np.asarray([columns[action_key][i] for i in rows], dtype=np.float64))
+        acts = action_maps[task].to_policy(np.asarray([columns[action_key][i] for i in rows], dtype=np.float64))
         frames = [np.stack([decode_image(columns[col][i]) for i in rows]) for col in image_columns]
         successes = ([bool(columns["next.success"][i]) for i in rows] if "next.success" in columns
                      else np.arange(len(rows)) == len(rows) - 1)
-        episodes.append(_episode(tasks, task, state, acts, successes, int(episode), views(frames, image_size),
+        episodes.append(_episode(tasks, task, state, acts, successes, episode, views(frames, image_size),
                                  state_dim, str(root)))
     return episodes
 
 
-def _load_hdf5(path: Path, tasks: _Tasks, state_dim: int, action_map, cameras: list[str], image_size: int,
+def _load_hdf5(path: Path, tasks: _Tasks, state_dim: int, action_maps, cameras: list[str], image_size: int,
                state_keys: list[str]):
     import h5py
 
@@ -219,7 +241,7 @@ def _load_hdf5(path: Path, tasks: _Tasks, state_dim: int, action_map, cameras: l
                 if not keys:
                     raise KeyError(f"{file}/{key}/obs has no 'state' dataset (or give env.state_keys)")
                 state = np.concatenate([obs[k][()].reshape(len(obs[k]), -1) for k in keys], axis=1)
-                acts = action_map.to_policy(demo["actions"][()])
+                acts = action_maps[task].to_policy(demo["actions"][()])
                 successes = demo["dones"][()] if "dones" in demo else np.arange(len(acts)) == len(acts) - 1
                 frames = [obs[c][()] for c in cameras]
                 episodes.append(_episode(tasks, task, state, acts, successes, int(key.rsplit("_", 1)[-1]),

@@ -38,6 +38,7 @@ import gymnasium as gym
 import numpy as np
 
 from stepnft.envs.base import ChunkEpisode, Expert, Simulator, checked_chunk
+from stepnft.envs.datasets import resized
 
 AUTO_SUCCESS_KEYS = ("is_success", "success")
 """The info keys ``env.success: auto`` reads, in order (Gymnasium-Robotics and most robot envs
@@ -132,8 +133,8 @@ def _leaf_keys(obs, prefix: str = "") -> list[str]:
 
 def default_state_keys(obs) -> tuple[str, ...]:
     """Every vector entry of a Dict observation (no images), in its order; () for a Box one."""
-    return tuple(k for k in _leaf_keys(obs) if np.asarray(_entry(obs, k, "")).dtype != np.uint8
-                 and np.asarray(_entry(obs, k, "")).ndim <= 1)
+    entries = {k: np.asarray(_entry(obs, k, "")) for k in _leaf_keys(obs)}
+    return tuple(k for k, v in entries.items() if v.dtype != np.uint8 and v.ndim <= 1)
 
 
 class ActionMap:
@@ -187,15 +188,9 @@ class Observer:
         return np.concatenate([np.asarray(_entry(raw_obs, k, ""), dtype=np.float32).ravel() for k in self.state_keys])
 
     def image(self, raw_obs, env: gym.Env) -> np.ndarray:
-        from PIL import Image
-
-        views = []
-        for camera in self.cameras:
-            frame = np.asarray(env.render() if camera == RENDER else _entry(raw_obs, camera, ""), dtype=np.uint8)
-            if frame.shape[:2] != (self.image_size, self.image_size):
-                frame = np.asarray(Image.fromarray(frame).resize((self.image_size,) * 2, Image.BILINEAR))
-            views.append(frame.transpose(2, 0, 1))
-        return np.stack(views)
+        frames = [np.asarray(env.render() if camera == RENDER else _entry(raw_obs, camera, ""), dtype=np.uint8)
+                  for camera in self.cameras]
+        return np.stack([resized(f, self.image_size, self.image_size).transpose(2, 0, 1) for f in frames])
 
     def success(self, raw_obs, info: dict) -> bool | None:
         """This step's success; None when the info holds no success signal."""
@@ -282,12 +277,8 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
         return {k: v.copy() for k, v in self._obs.items()}, reward, self._terminated, self._truncated, self._info(steps)
 
     def render(self) -> np.ndarray:
-        from PIL import Image
-
         frame = np.asarray(self._env.render(), dtype=np.uint8)
-        if self.render_size is not None and frame.shape[:2] != tuple(self.render_size):
-            frame = np.asarray(Image.fromarray(frame).resize(self.render_size[::-1], Image.BILINEAR))
-        return frame
+        return frame if self.render_size is None else resized(frame, *self.render_size)
 
     def close(self) -> None:
         self._env.close()
@@ -324,6 +315,8 @@ class GymSimulator(Simulator):
     distribution = "gymnasium"
     spec: GymSpec | None = None
     image_size = 64
+    action_maps: dict[str, ActionMap] = {}
+    """Each task's :class:`ActionMap` (read by :func:`_configured`'s probe)."""
 
     def configured(self, env_cfg) -> "GymSimulator":
         return _configured(GymSpec.from_config(env_cfg), env_cfg.image_size)
@@ -367,11 +360,7 @@ class GymSimulator(Simulator):
     def load_dataset(self, path, cameras: Sequence[str] = (), image_size: int = 64) -> list:
         from stepnft.envs.datasets import load_dataset
 
-        env = self.make_env(self.task_names()[0])
-        try:
-            return load_dataset(path, self, env.actions, cameras, image_size, self._spec().state_keys)
-        finally:
-            env.close()
+        return load_dataset(path, self, self.action_maps, cameras, image_size, self._spec().state_keys)
 
 
 @functools.lru_cache(maxsize=16)
@@ -379,7 +368,7 @@ def _configured(spec: GymSpec, image_size: int) -> GymSimulator:
     """A :class:`GymSimulator` for ``spec``: one env per task built, reset and stepped once with
     the middle action, so a missing success signal, key or module is one line before any work."""
     sim = GymSimulator()
-    sim.spec, sim.image_size = spec, image_size
+    sim.spec, sim.image_size, sim.action_maps = spec, image_size, {}
     dims = set()
     for task in spec.tasks:
         env = sim.make_env(task, image_size=image_size)
@@ -387,6 +376,7 @@ def _configured(spec: GymSpec, image_size: int) -> GymSimulator:
             env.reset(seed=0)
             env.step(np.zeros(env.action_space.shape, np.float32))  # raises without a success signal
             dims.add((env.observer.state_dim, env.actions.dim))
+            sim.action_maps[task] = env.actions
             sim.control_hz = float(env._env.metadata.get("render_fps") or 20.0)
         finally:
             env.close()

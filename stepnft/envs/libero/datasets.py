@@ -46,31 +46,21 @@ from pathlib import Path
 
 import numpy as np
 
+from stepnft.envs.datasets import HDF5_SUFFIXES, dataset_format
 from stepnft.envs.datasets import decode_image as _decode
 from stepnft.envs.datasets import instruction_key as _instruction_key
+from stepnft.envs.datasets import lerobot_episodes, lerobot_image_columns, read_lerobot
 from stepnft.envs.datasets import lerobot_tasks as _lerobot_tasks
 from stepnft.envs.datasets import pick_column as _pick
 from stepnft.envs.datasets import views as _views
 from stepnft.envs.episodes import DemoEpisode
 from stepnft.envs.libero.suites import all_tasks
 
-HDF5_SUFFIXES = (".hdf5", ".h5")
 LEROBOT_STATE_KEYS = ("observation.state", "state")
 LEROBOT_ACTION_KEYS = ("action", "actions")
 HDF5_IMAGE_KEYS = {"agentview": "agentview_rgb", "robot0_eye_in_hand": "eye_in_hand_rgb"}
 LEROBOT_IMAGE_KEYS = {"agentview": ("observation.images.image", "image"),
                       "robot0_eye_in_hand": ("observation.images.wrist_image", "wrist_image")}
-
-
-def dataset_format(path: Path) -> str | None:
-    """``"hdf5"``, ``"lerobot"`` or None: which LIBERO demonstration format ``path`` holds."""
-    if (path / "meta" / "info.json").is_file():
-        return "lerobot"
-    if path.is_file() and path.suffix in HDF5_SUFFIXES:
-        return "hdf5"
-    if path.is_dir() and any(p.suffix in HDF5_SUFFIXES for p in path.rglob("*")):
-        return "hdf5"
-    return None
 
 
 def load_dataset(path: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
@@ -196,37 +186,15 @@ def write_hdf5(path: Path, task: str, demos: list[dict[str, np.ndarray]]) -> Non
 
 def load_lerobot(root: Path, cameras: Sequence[str] = (), image_size: int = 64) -> list[DemoEpisode]:
     """The episodes of a LeRobot dataset on disk (module doc: the subset of the format read)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    info = json.loads((root / "meta" / "info.json").read_text())
-    version = str(info.get("codebase_version", ""))
-    if not version.startswith(("v2", "v3")):
-        raise ValueError(f"{root}: LeRobot dataset version {version or '?'} is not read (v2.x and v3.0 are)")
-    files = sorted((root / "data").rglob("*.parquet"))
-    if not files:
-        raise FileNotFoundError(f"{root}: no parquet files under data/")
-    table = pa.concat_tables([pq.read_table(f) for f in files])
-    state_key = _pick(table.column_names, LEROBOT_STATE_KEYS, "state")
-    action_key = _pick(table.column_names, LEROBOT_ACTION_KEYS, "action")
-    image_columns = []
-    features = info.get("features", {})
-    for camera in cameras:
-        found = [n for n in LEROBOT_IMAGE_KEYS[camera] if n in features or n in table.column_names]
-        if found and features.get(found[0], {}).get("dtype") == "video":
-            raise ValueError(f"{root}: {found[0]} is stored as video, which is not decoded: use it without cameras")
-        if not found or found[0] not in table.column_names:
-            raise ValueError(f"{root} has no {camera} images (tried {', '.join(LEROBOT_IMAGE_KEYS[camera])})")
-        image_columns.append(found[0])
+    info, columns = read_lerobot(root)
+    state_key = _pick(columns, LEROBOT_STATE_KEYS, "state")
+    action_key = _pick(columns, LEROBOT_ACTION_KEYS, "action")
+    image_columns = lerobot_image_columns(root, info, columns, [(c, LEROBOT_IMAGE_KEYS[c]) for c in cameras])
     by_instruction = {_instruction_key(text): name for name, t in all_tasks().items()
                       for text in (t.bddl_instruction(), t.instruction)}
     instructions = _lerobot_tasks(root)
-    columns = table.to_pydict()
-    episode_ids = np.asarray(columns["episode_index"])
-    order = np.lexsort((np.asarray(columns["frame_index"]), episode_ids))
     episodes = []
-    for episode in np.unique(episode_ids):
-        rows = order[episode_ids[order] == episode]
+    for episode, rows in lerobot_episodes(columns):
         text = instructions[int(columns["task_index"][rows[0]])]
         if _instruction_key(text) not in by_instruction:
             raise ValueError(f"{root}: episode {episode} has instruction {text!r}, which no LIBERO task has")
@@ -236,5 +204,5 @@ def load_lerobot(root: Path, cameras: Sequence[str] = (), image_size: int = 64) 
         frames = [np.stack([_decode(columns[col][i]) for i in rows]) for col in image_columns]
         # LeRobot's LIBERO datasets hold successful demonstrations only.
         successes = np.arange(len(rows)) == len(rows) - 1
-        episodes.append(_episode(task, state, actions, successes, int(episode), _views(frames, image_size)))
+        episodes.append(_episode(task, state, actions, successes, episode, _views(frames, image_size)))
     return episodes
