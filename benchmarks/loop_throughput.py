@@ -10,6 +10,10 @@ each stepping its share of the episodes (split evenly by env steps) with no poli
 pipes. The ratio of the two wall-clocks is the loop's efficiency: 1.0 means the loop costs
 nothing beyond the simulator.
 
+For an ``env.name: gym`` run the same work is replayed a third time on the user's Gymnasium env
+itself (reset with the same seeds, stepped with the same actions in its own units): the loop
+against the raw env's stepping rate, the chunk env's own cost included.
+
 Each setting is measured in ``--repeats`` turns (the loop, then its replay), and the median ratio
 counts: the machine's slow spells fall on both sides of a turn alike. Prints a table and writes
 ``OUT/loop_throughput.{json,md,png}`` with the command and commit.
@@ -44,15 +48,19 @@ from stepnft.rollout.collector import Collector
 from stepnft.rollout.plan import EpisodePlan, RolloutSpec
 
 
-def episode_ops(batch, policy, num_tasks: int) -> list[tuple[int, int, list[np.ndarray]]]:
-    """What the simulator did for each episode of a recorded batch: its task, reset seed and the
-    action chunks it stepped (the policy's executed positions, as the collector sent them)."""
+def episode_ops(batch, policy, num_tasks: int) -> list[tuple[int, int, list[np.ndarray], list[int]]]:
+    """What the simulator did for each episode of a recorded batch: its task, reset seed, the
+    action chunks it stepped (the policy's executed positions, as the collector sent them) and
+    how many steps of each chunk ran (fewer in the chunk the episode ended inside)."""
     n_exec = policy.config.n_exec
     chunks = policy.env_actions(batch.actions[:, :n_exec]).clamp(-1.0, 1.0).numpy()
-    calls = [[] for _ in range(batch.num_episodes)]
+    executed = batch.mask[:, :n_exec].sum(dim=1).tolist()
+    calls, steps = [[] for _ in range(batch.num_episodes)], [[] for _ in range(batch.num_episodes)]
     for c, e in enumerate(batch.episode.tolist()):
         calls[e].append(chunks[c])
-    return [(int(batch.episode_task[e]), int(batch.episode_seed[e]), calls[e]) for e in range(batch.num_episodes)]
+        steps[e].append(int(executed[c]))
+    return [(int(batch.episode_task[e]), int(batch.episode_seed[e]), calls[e], steps[e])
+            for e in range(batch.num_episodes)]
 
 
 def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episodes: int) -> dict:
@@ -93,15 +101,22 @@ def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episode
 
 
 def _replay_part(args) -> tuple[float, int]:
-    env_cfg, n_exec, part, barrier = args
+    env_cfg, n_exec, part, barrier, raw = args
     sim = simulator_for(env_cfg)
     envs = {task: sim.make_env(env_cfg.tasks[task], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
                                terminate_on_success=env_cfg.terminate_on_success, **env_options(env_cfg))
-            for task in {task for task, _, _ in part}}
+            for task in {task for task, *_ in part}}
     barrier.wait()
     start, steps = time.perf_counter(), 0
-    for task, seed, chunks in part:
+    for task, seed, chunks, executed in part:
         env = envs[task]
+        if raw:  # the user's Gymnasium env itself, stepped with the same actions in its own units
+            env.raw_env.reset(seed=seed)
+            for chunk, n in zip(chunks, executed):
+                for action in chunk[:n]:
+                    env.raw_env.step(env.actions.to_env(action))
+                steps += n
+            continue
         env.reset(seed=seed)
         for chunk in chunks:
             steps += env.step(chunk)[4]["steps"]
@@ -111,8 +126,9 @@ def _replay_part(args) -> tuple[float, int]:
     return seconds, steps
 
 
-def replay(cfg, n_exec: int, episodes: list, processes: int) -> dict:
-    """The same simulator work in ``processes`` plain processes (episodes split evenly by steps)."""
+def replay(cfg, n_exec: int, episodes: list, processes: int, raw: bool = False) -> dict:
+    """The same simulator work in ``processes`` plain processes (episodes split evenly by steps);
+    ``raw``: through the Gymnasium env an ``env.name: gym`` chunk env wraps, not the chunk env."""
     parts, loads = [[] for _ in range(processes)], [0] * processes
     for episode in sorted(episodes, key=lambda e: -len(e[2])):
         w = int(np.argmin(loads))
@@ -122,7 +138,7 @@ def replay(cfg, n_exec: int, episodes: list, processes: int) -> dict:
     with context.Manager() as manager:
         barrier = manager.Barrier(processes)
         with context.Pool(processes) as pool:
-            results = pool.map(_replay_part, [(cfg.env, n_exec, part, barrier) for part in parts])
+            results = pool.map(_replay_part, [(cfg.env, n_exec, part, barrier, raw) for part in parts])
     return {"seconds": max(s for s, _ in results), "env_steps": sum(n for _, n in results)}
 
 
@@ -137,8 +153,13 @@ def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
         for part in turns:
             sim = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers))
             assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
-            turns[part].append({"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"],
-                                "simulator_s": sim["seconds"], "ratio": sim["seconds"] / loop[part]["seconds"]})
+            turn = {"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"],
+                    "simulator_s": sim["seconds"], "ratio": sim["seconds"] / loop[part]["seconds"]}
+            if cfg.env.name == "gym":
+                raw = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers), raw=True)
+                assert raw["env_steps"] == loop[part]["env_steps"], (raw["env_steps"], loop[part]["env_steps"])
+                turn |= {"raw_s": raw["seconds"], "raw_ratio": raw["seconds"] / loop[part]["seconds"]}
+            turns[part].append(turn)
     rows = []
     for part, measured in turns.items():
         ratios = [m["ratio"] for m in measured]
@@ -147,10 +168,16 @@ def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
                "loop_steps_per_s": middle["env_steps"] / middle["loop_s"],
                "simulator_steps_per_s": middle["env_steps"] / middle["simulator_s"],
                "ratio": float(np.median(ratios)), "ratios": ratios}
+        if "raw_ratio" in middle:  # env.name gym: against the user's env without the chunk env too
+            raw = [m["raw_ratio"] for m in measured]
+            row |= {"raw_steps_per_s": middle["env_steps"] / middle["raw_s"], "raw_ratio": float(np.median(raw)),
+                    "raw_ratios": raw}
         rows.append(row)
         print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
               f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f} "
-              f"(turns: {', '.join(f'{r:.2f}' for r in ratios)})", flush=True)
+              f"(turns: {', '.join(f'{r:.2f}' for r in ratios)})"
+              + (f"; the Gymnasium env alone {row['raw_steps_per_s']:7,.0f}: ratio {row['raw_ratio']:.2f}"
+                 if "raw_ratio" in row else ""), flush=True)
     return rows
 
 
@@ -210,6 +237,14 @@ def write_report(record: dict, out: Path) -> None:
         lines += ["", f"The run's own wall-clock by phase ({total / 60:.1f} min, {record['run_env_steps']:,} RL env steps):",
                   "", "| phase | seconds | share |", "|---|---|---|"]
         lines += [f"| {k} | {v:.0f} | {v / total:.0%} |" for k, v in record["run_time_s"].items()]
+    if any("raw_ratio" in r for r in record["rows"]):
+        lines += ["", "`env.name: gym`: the same work on the user's Gymnasium env itself (its own actions, no chunk "
+                  "env: the raw env's stepping rate):", "",
+                  "| policy | workers | part | Gymnasium env alone env steps/s | loop / raw env (median) | turns |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {r['policy']} | {r['workers']} | {r['part']} | {r['raw_steps_per_s']:,.0f} | "
+                  f"{r['raw_ratio']:.2f} | {', '.join(f'{x:.2f}' for x in r['raw_ratios'])} |"
+                  for r in record["rows"] if "raw_ratio" in r]
     (out / "loop_throughput.md").write_text("\n".join(lines) + "\n")
     import matplotlib
 

@@ -237,6 +237,11 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
     def np_random(self, value: np.random.Generator) -> None:
         self._env.unwrapped.np_random = value
 
+    @property
+    def raw_env(self) -> gym.Env:
+        """The user's Gymnasium env this chunk env steps (in its own action units: ``actions.to_env``)."""
+        return self._env
+
     def _observe(self, raw) -> dict:
         self.raw_obs = raw
         obs = {"state": self.observer.state(raw)}

@@ -66,6 +66,12 @@ def test_actions_are_mapped_onto_the_envs_bounds_and_success_ends_the_episode():
         if terminated or truncated:
             break
     assert terminated and info["success"] and info["episode_steps"] < 60
+    # raw_env is the user's env itself: the same seed and the mapped action give the same state
+    raw, _ = env.raw_env.reset(seed=1)
+    raw, *_ = env.raw_env.step(env.actions.to_env(np.ones(2, np.float32)))
+    env.reset(seed=1)
+    env.step(np.ones((1, 2), np.float32))
+    np.testing.assert_allclose(raw["agent"], env.raw_obs["agent"])
 
 
 def test_seeded_resets_and_restored_streams_repeat_the_episodes():
