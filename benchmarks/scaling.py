@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+from provenance import commit
 
 from stepnft.algos.base import make_algorithm, make_optimizer
 from stepnft.algos.stepnft import stepnft_update
@@ -274,7 +275,8 @@ def report(results: dict, out: Path) -> str:
                      f"{p['push_s']:.3f} | {p['iteration_s']:.2f} | {p['bottleneck']} | {p['run_hours']:.2f} | "
                      f"{p['machine_hours']:.2f} |")
     text = "\n".join(lines) + "\n"
-    (out / "scaling.md").write_text(f"Command: `{r['command']}` on {r['machine']}\n\n" + text)
+    (out / "scaling.md").write_text(f"Command: `{r['command']}` (commit {r.get('commit', '?')}) on {r['machine']}\n\n"
+                                    + text)
     return text
 
 
@@ -365,6 +367,7 @@ def main(argv=None) -> dict:
     results["args"] = vars(args)
     results["projection"] = project(results, cfg, args)
     results["command"] = " ".join(["benchmarks/scaling.py", *(argv if argv is not None else sys.argv[1:])])
+    results["commit"] = commit()
     results["machine"] = f"{platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, ray {ray.__version__}"
     text = report(results, out)
     (out / "scaling.json").write_text(json.dumps(results, indent=2))
