@@ -18,9 +18,11 @@ from pathlib import Path
 import numpy as np
 from provenance import command, commit
 
+from stepnft.runs import read_metrics
+
 
 def read_run(path: Path) -> dict:
-    rows = [json.loads(line) for line in (path / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    rows = read_metrics(path / "metrics.jsonl", drop_torn_tail=True)  # a stopped run may end mid-line
     rollout = [(r["env_steps"], r["iteration"], r["charts/rollout_success_rate"]) for r in rows
                if "charts/rollout_success_rate" in r]
     validation = [(r["env_steps"], r["iteration"], r["charts/validation_success_rate"]) for r in rows
