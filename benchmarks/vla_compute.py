@@ -158,7 +158,7 @@ def one(args) -> dict:
         policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank, args.precision)
     policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
     out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
-           "lora_rank": args.lora_rank, "calls": args.calls, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
+           "lora_rank": args.lora_rank, "calls": args.calls, "warmups": args.warmups, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
            "trained_M": sum(p.numel() for p in policy.parameters() if p.requires_grad) / 1e6,
            "weights_MB": sum(p.nbytes for p in policy.parameters()) / 2**20}
     batch = make_batch(policy, args.algo, args.calls, side)
@@ -171,12 +171,12 @@ def one(args) -> dict:
         base = rss_mb()
         reset_peak()
     wall = cpu = 0.0
-    for rep in range(args.reps + 1):  # the first is a warm-up (PPO builds its value head there)
+    for rep in range(args.warmups + args.reps):  # warm-ups first (PPO builds its value head in its first update)
         sync(args.device)
         start, start_cpu = time.perf_counter(), time.process_time()
         metrics = algo.update(batch)
         sync(args.device)
-        if rep:
+        if rep >= args.warmups:
             wall += time.perf_counter() - start
             cpu += time.process_time() - start_cpu
     peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else rss_mb("VmHWM")
@@ -246,7 +246,10 @@ def main() -> None:
                         help="full (the model's real architecture) or tiny; smolvla: full, by its old name")
     parser.add_argument("--calls", type=int, default=2, help="policy calls in the update batch (equal for all algorithms)")
     parser.add_argument("--sample-calls", type=int, default=1, help="batch of the timed policy calls")
-    parser.add_argument("--reps", type=int, default=1, help="timed updates after one warm-up")
+    parser.add_argument("--reps", type=int, default=1, help="timed updates after the warm-ups")
+    parser.add_argument("--warmups", type=int, default=1,
+                        help="untimed updates first (0 at π0's size, where one update takes minutes: the first one's "
+                             "extra work, PPO's value head and AdamW's state, is then inside the timed one)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS), help="rows of these algorithms only")
@@ -288,7 +291,7 @@ def main() -> None:
             results["rows"].append(kept[0])
             continue
         command = [sys.executable, __file__, "--model", args.model, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
-                   "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
+                   "--warmups", str(args.warmups), "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
                    "--one", algo, precision, "1" if checkpointing else "0", str(lora_rank)]
         done = subprocess.run(command, capture_output=True, text=True, preexec_fn=lambda: cap_memory(limit_gb))
         lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
