@@ -145,33 +145,31 @@ def replay(cfg, n_exec: int, episodes: list, processes: int, raw: bool = False) 
 def measure(cfg, run: Path, which: str, workers: int, args) -> list[dict]:
     """``args.repeats`` turns of (the loop, then the same simulator work alone) for one policy
     and worker count; the median ratio of each part (training, evaluation) over the turns, so
-    that a slow spell of a shared machine falls on both sides of a turn alike."""
+    that a slow spell of a shared machine falls on both sides of a turn alike. An ``env.name:
+    gym`` run is replayed a second time on the raw Gymnasium env (``raw_`` keys)."""
     n_exec = load_policy(run / which).config.n_exec
+    modes = {"": False, "raw_": True} if cfg.env.name == "gym" else {"": False}
     turns: dict[str, list[dict]] = {"train": [], "eval": []}
     for _ in range(args.repeats):
         loop = play(cfg, run, which, workers, args.iterations, args.eval_episodes)
         for part in turns:
-            sim = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers))
-            assert sim["env_steps"] == loop[part]["env_steps"], (sim["env_steps"], loop[part]["env_steps"])
-            turn = {"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"],
-                    "simulator_s": sim["seconds"], "ratio": sim["seconds"] / loop[part]["seconds"]}
-            if cfg.env.name == "gym":
-                raw = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers), raw=True)
-                assert raw["env_steps"] == loop[part]["env_steps"], (raw["env_steps"], loop[part]["env_steps"])
-                turn |= {"raw_s": raw["seconds"], "raw_ratio": raw["seconds"] / loop[part]["seconds"]}
+            turn = {"env_steps": loop[part]["env_steps"], "loop_s": loop[part]["seconds"]}
+            for prefix, raw in modes.items():
+                sim = replay(cfg, n_exec, loop[part]["episodes"], max(1, workers), raw=raw)
+                assert sim["env_steps"] == loop[part]["env_steps"], (prefix, sim["env_steps"], loop[part]["env_steps"])
+                turn |= {f"{prefix or 'simulator_'}s": sim["seconds"], f"{prefix}ratio": sim["seconds"] / loop[part]["seconds"]}
             turns[part].append(turn)
     rows = []
     for part, measured in turns.items():
         ratios = [m["ratio"] for m in measured]
         middle = measured[int(np.argsort(ratios)[len(ratios) // 2])]
         row = {"policy": which, "workers": workers, "part": part, "env_steps": middle["env_steps"],
-               "loop_steps_per_s": middle["env_steps"] / middle["loop_s"],
-               "simulator_steps_per_s": middle["env_steps"] / middle["simulator_s"],
-               "ratio": float(np.median(ratios)), "ratios": ratios}
-        if "raw_ratio" in middle:  # env.name gym: against the user's env without the chunk env too
-            raw = [m["raw_ratio"] for m in measured]
-            row |= {"raw_steps_per_s": middle["env_steps"] / middle["raw_s"], "raw_ratio": float(np.median(raw)),
-                    "raw_ratios": raw}
+               "loop_steps_per_s": middle["env_steps"] / middle["loop_s"]}
+        for prefix in modes:  # "": the chunk env's simulator alone; "raw_": the user's Gymnasium env alone
+            name = prefix or "simulator_"
+            row |= {f"{name}steps_per_s": middle["env_steps"] / middle[f"{name}s"],
+                    f"{prefix}ratio": float(np.median([m[f"{prefix}ratio"] for m in measured])),
+                    f"{prefix}ratios": [m[f"{prefix}ratio"] for m in measured]}
         rows.append(row)
         print(f"{which:<11} workers={workers} {part:<5}: loop {row['loop_steps_per_s']:7,.0f} env steps/s, "
               f"simulator alone {row['simulator_steps_per_s']:7,.0f}: ratio {row['ratio']:.2f} "

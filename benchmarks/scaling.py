@@ -10,6 +10,9 @@ writes scaling.json, scaling.md and scaling.png to --out.
 
     .venv/bin/python benchmarks/scaling.py            # the measurement: a quiet machine with >= 3 cores, a few minutes
     .venv/bin/python benchmarks/scaling.py --quick    # checks that it runs (tiny sizes: numbers mean nothing)
+    .venv/bin/python benchmarks/scaling.py --project-from benchmarks/results/scaling --config configs/mt50.yaml \
+        --project-envs 400 --episode-steps 144 --project-iterations 160 --out benchmarks/results/scaling_mt50
+                                                      # the projection alone, for another run, from measured figures
 """
 
 from __future__ import annotations
@@ -57,6 +60,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--cores-per-machine", type=int, default=16, help="for the projection: rollout cores per machine")
     p.add_argument("--project-envs", type=int, default=64, help="for the projection: parallel environments")
     p.add_argument("--project-iterations", type=int, default=300, help="for the projection: iterations of the run")
+    p.add_argument("--episode-steps", type=float, default=None,
+                   help="for the projection: mean env steps per episode (default: the measured rollouts', which run "
+                        "a fresh policy to the step cap; a trained policy's episodes end earlier on success)")
+    p.add_argument("--project-from", default=None, metavar="FOLDER",
+                   help="measure nothing: project from FOLDER/scaling.json's figures with this --config and the "
+                        "--project-* flags, and write projection.{json,md} to --out")
     p.add_argument("--quick", action="store_true", help="tiny sizes, to check the script runs")
     p.add_argument("--out", default="benchmarks/results/scaling", help="output folder")
     return p.parse_args(argv)
@@ -219,7 +228,7 @@ def project(results: dict, cfg, args) -> list[dict]:
     efficiency = min(1.0, results["rollout"]["2"]["env_steps_per_s"] / (2 * roll1))
     learn1 = results["learner"]["1"]["samples_per_s"]
     learn_efficiency = min(1.0, results["learner"]["2"]["samples_per_s"] / (2 * learn1))
-    steps = results["rollout"]["1"]["mean_episode_steps"]
+    steps = args.episode_steps or results["rollout"]["1"]["mean_episode_steps"]
     k = cfg.policy.num_inference_steps if cfg.algo.record_steps == "all" else 1
     samples = args.project_envs * math.ceil(steps / cfg.policy.n_exec) * k
     rows = []
@@ -265,19 +274,24 @@ def report(results: dict, out: Path) -> str:
     for name, p in r["push"].items():
         lines.append(f"| {name} policy | {p['policy_mb']:.1f} | {1e3 * p['whole_s']:.1f} ms | "
                      f"{1e3 * p['changed_s']:.1f} ms | {1e3 * p['unchanged_s']:.1f} ms |")
-    lines += ["", f"Projection: {a['project_envs']} environments, {a['project_iterations']} iterations, "
-              f"{a['cores_per_machine']} cores per machine (docs/scaling.md):", "",
-              "| machines | rollout workers | learner processes | rollout s | update s | push s | s / iteration | "
-              "bottleneck | run hours | machine-hours |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for p in r["projection"]:
-        lines.append(f"| {p['machines']} | {p['rollout_workers']} | {p['learner_processes']} | {p['rollout_s']:.2f} | "
-                     f"{p['update_s']:.2f} | "
-                     f"{p['push_s']:.3f} | {p['iteration_s']:.2f} | {p['bottleneck']} | {p['run_hours']:.2f} | "
-                     f"{p['machine_hours']:.2f} |")
+    lines += ["", projection_table(r["projection"], a)]
     text = "\n".join(lines) + "\n"
     (out / "scaling.md").write_text(f"Command: `{r['command']}` (commit {r.get('commit', '?')}) on {r['machine']}\n\n"
                                     + text)
     return text
+
+
+def projection_table(projection: list[dict], a: dict) -> str:
+    lines = [f"Projection: {a['project_envs']} environments, {a['project_iterations']} iterations, "
+             f"{a['cores_per_machine']} cores per machine (docs/scaling.md):", "",
+             "| machines | rollout workers | learner processes | rollout s | update s | push s | s / iteration | "
+              "bottleneck | run hours | machine-hours |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for p in projection:
+        lines.append(f"| {p['machines']} | {p['rollout_workers']} | {p['learner_processes']} | {p['rollout_s']:.2f} | "
+                     f"{p['update_s']:.2f} | "
+                     f"{p['push_s']:.3f} | {p['iteration_s']:.2f} | {p['bottleneck']} | {p['run_hours']:.2f} | "
+                     f"{p['machine_hours']:.2f} |")
+    return "\n".join(lines)
 
 
 def plot(results: dict, path: Path) -> None:
@@ -326,13 +340,15 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main(argv=None) -> dict:
+    args = parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.project_from:
+        return project_only(args, out, argv)
     import ray
 
     from stepnft.rollout.ray_collector import RayCollector
 
-    args = parse_args(argv)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     cfg, policy = setup(args)
     rollout_spec = make_algorithm(cfg.algo, policy, 1, torch.Generator()).rollout
     results = {"rollout": {}, "learner": {}, "push": {}}
@@ -375,6 +391,22 @@ def main(argv=None) -> dict:
     print(text)
     print(f"wrote {out}/scaling.json, scaling.md and scaling.png")
     return results
+
+
+def project_only(args, out: Path, argv) -> dict:
+    """The projection of ``--config``'s run from the figures a measurement saved."""
+    measured = json.loads((Path(args.project_from) / "scaling.json").read_text())
+    cfg = load_config(args.config)
+    record = {"command": " ".join(["benchmarks/scaling.py", *(argv if argv is not None else sys.argv[1:])]),
+              "commit": commit(), "measured": {"folder": args.project_from, "commit": measured.get("commit"),
+                                               "command": measured.get("command")},
+              "args": vars(args), "projection": project(measured, cfg, args)}
+    text = projection_table(record["projection"], record["args"])
+    (out / "projection.json").write_text(json.dumps(record, indent=2))
+    (out / "projection.md").write_text(f"Command: `{record['command']}` (commit {record['commit']}), from the figures "
+                                       f"of {args.project_from} (commit {measured.get('commit')})\n\n{text}\n")
+    print(text)
+    return record
 
 
 if __name__ == "__main__":
