@@ -102,19 +102,28 @@ def play(cfg, run: Path, which: str, workers: int, iterations: int, eval_episode
 
 def _replay_part(args) -> tuple[float, int]:
     env_cfg, n_exec, part, barrier, raw = args
-    sim = simulator_for(env_cfg)
-    envs = {task: sim.make_env(env_cfg.tasks[task], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
-                               terminate_on_success=env_cfg.terminate_on_success, **env_options(env_cfg))
-            for task in {task for task, *_ in part}}
+    tasks = {task for task, *_ in part}
+    if raw:  # the user's Gymnasium env itself (gymnasium.make as the chunk env calls it) and its action map
+        from stepnft.envs.gym import ActionMap, GymSpec, make_gym_env
+
+        spec = GymSpec.from_config(env_cfg)
+        ids = {task: spec.ids[spec.tasks.index(env_cfg.tasks[task])] for task in tasks}
+        envs = {task: make_gym_env(ids[task], dict(spec.make_kwargs), env_cfg.max_episode_steps) for task in tasks}
+        actions = {task: ActionMap(env.action_space) for task, env in envs.items()}
+    else:
+        sim = simulator_for(env_cfg)
+        envs = {task: sim.make_env(env_cfg.tasks[task], n_exec=n_exec, max_episode_steps=env_cfg.max_episode_steps,
+                                   terminate_on_success=env_cfg.terminate_on_success, **env_options(env_cfg))
+                for task in tasks}
     barrier.wait()
     start, steps = time.perf_counter(), 0
     for task, seed, chunks, executed in part:
         env = envs[task]
-        if raw:  # the user's Gymnasium env itself, stepped with the same actions in its own units
-            env.raw_env.reset(seed=seed)
+        if raw:  # stepped with the same actions in its own units
+            env.reset(seed=seed)
             for chunk, n in zip(chunks, executed):
                 for action in chunk[:n]:
-                    env.raw_env.step(env.actions.to_env(action))
+                    env.step(actions[task].to_env(action))
                 steps += n
             continue
         env.reset(seed=seed)
