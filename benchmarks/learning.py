@@ -11,7 +11,11 @@ so is a seed that ``--out``'s committed ``learning.json`` records with the same 
 folders are not committed: a fresh clone adds seeds to a published table without rerunning the
 others), and ``--paired-with`` reads a folder's ``learning.json`` where its run folders are absent;
 one that was interrupted resumes from its last checkpoint (one stopped before its first is
-left for you to delete: another invocation may still be running it).
+left for you to delete: another invocation may still be running it). Run folders end with the
+machine: ``--park`` packs each interrupted seed (its last checkpoint, config, metrics and
+policies; stop the invocation running it first) into ``OUT/partial_seedN.tar.gz``, which can be
+committed, and the same command on a fresh clone unpacks it and resumes that seed where it
+stopped.
 
     .venv/bin/python benchmarks/learning.py --config configs/quickstart.yaml --seeds 0 1 2
     .venv/bin/python benchmarks/learning.py --tasks button-press-topdown-v3 ... --out benchmarks/results/other
@@ -26,6 +30,7 @@ import dataclasses
 import json
 import statistics
 import sys
+import tarfile
 import time
 from pathlib import Path
 
@@ -56,7 +61,54 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "the same seeds: adds paired differences with 95 %% CIs (of RL alone where the SFT starts "
                         "match, else of the whole recipe, the SFT starts' difference beside it)")
     p.add_argument("--out", default="benchmarks/results/learning", help="folder for runs and the result table")
+    p.add_argument("--park", action="store_true",
+                   help="train nothing: pack each of --seeds whose run stopped after a checkpoint (stop the invocation "
+                        "running it first) into OUT/partial_seedN.tar.gz, for a later session to resume")
     return p.parse_args(argv)
+
+
+def park(out: Path, seed: int) -> Path | None:
+    """An interrupted seed's run folder packed for another machine: its last checkpoint, config,
+    metrics, language cache and policies (not its TensorBoard logs, not older checkpoints), with
+    ``partial_seedN.json`` saying what made it. None when the seed has finished or has no checkpoint."""
+    run = out / f"seed{seed}"
+    latest = run / "checkpoints" / "LATEST"
+    if (run / "summary.json").is_file() or not latest.is_file():
+        return None
+    keep = latest.read_text().strip()
+
+    def member(info: tarfile.TarInfo) -> tarfile.TarInfo | None:
+        parts = Path(info.name).parts  # seedN/...
+        if len(parts) > 1 and parts[1] == "tb":
+            return None
+        if len(parts) > 2 and parts[1] == "checkpoints" and parts[2] not in (keep, "LATEST"):
+            return None
+        return info
+
+    path = out / f"partial_seed{seed}.tar.gz"
+    with tarfile.open(path, "w:gz") as tar:
+        tar.add(run, arcname=run.name, filter=member)
+    (out / f"partial_seed{seed}.json").write_text(json.dumps(
+        {"seed": seed, "checkpoint": keep, "commit": commit(), "command": command(), "packages": packages(),
+         "cpu": cpu()}, indent=2))
+    return path
+
+
+def unpark(out: Path, seed: int) -> bool:
+    """Unpack ``OUT/partial_seedN.tar.gz`` where the seed's run folder is absent (a fresh clone),
+    so that the seed resumes from the checkpoint it holds. Refused in one line when it was made
+    with other versions of the packages that move the numbers."""
+    path, run = out / f"partial_seed{seed}.tar.gz", out / f"seed{seed}"
+    if run.exists() or not path.is_file():
+        return False
+    made = json.loads((out / f"partial_seed{seed}.json").read_text())
+    if made.get("packages") != packages():
+        _fail(f"{path} was made with {made.get('packages')}, this environment has {packages()}: resuming it would "
+              "mix two sets of numbers in one run; delete it (and its .json) to run the seed from the start")
+    with tarfile.open(path) as tar:
+        tar.extractall(out, filter="data")
+    print(f"learning.py: seed {seed}: resuming the parked run {path} ({made['checkpoint']}, commit {made['commit']})")
+    return True
 
 
 def with_fields(cfg: TrainConfig, items: list[str]) -> TrainConfig:
@@ -224,6 +276,12 @@ def main(argv=None) -> dict:
         demos = dataclasses.replace(demos, episodes=args.demos)
     if args.task_demos is not None:
         demos = dataclasses.replace(demos, task_episodes={k: int(v) for k, v in (s.split("=") for s in args.task_demos)})
+    if args.park:
+        for seed in args.seeds:
+            path = park(out, seed)
+            print(f"learning.py: seed {seed}: " + (f"parked in {path}" if path else "nothing to park (finished, or "
+                                                   "no checkpoint yet)"))
+        return {}
     runs = []
     recorded = recorded_runs(out, args)  # published seeds whose run folders this checkout lacks
     for seed in args.seeds:
@@ -240,6 +298,7 @@ def main(argv=None) -> dict:
             runs.append({"seed": seed, "run_dir": cfg.run_dir, **recorded[seed]})
             continue
         if not done.is_file():  # finished earlier (or in a parallel invocation): reuse it
+            unpark(out, seed)  # a run parked by an earlier session: its folder, to resume
             start = time.perf_counter()
             ran_on = commit()  # before training: the code may change (a commit, an edit) while a seed runs
             resume = (Path(cfg.run_dir) / "checkpoints" / "LATEST").is_file()  # interrupted: go on from there

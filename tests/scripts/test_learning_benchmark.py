@@ -137,3 +137,62 @@ def test_metaworld_tasks_are_also_tabled_per_difficulty_split(learning):
     assert "| easy | 1 | 0.30 ± 0.14 | 0.50 ± 0.28 | 0.20 ± 0.14 |" in text
     assert "| hard | 1 | 0.30 ± 0.14 | 0.10 ± 0.00 |" in text and "medium" not in text
     assert learning.split_table(runs, ["bandit"]) == ""
+
+
+def interrupted_run(folder, seed: int) -> None:
+    run = folder / f"seed{seed}"
+    for name in ("iter_000010", "iter_000020"):
+        (run / "checkpoints" / name).mkdir(parents=True)
+        (run / "checkpoints" / name / "state.json").write_text(name)
+    (run / "checkpoints" / "LATEST").write_text("iter_000020")
+    (run / "tb").mkdir()
+    (run / "tb" / "events").write_text("x" * 1000)
+    (run / "metrics.jsonl").write_text('{"iteration": 20}\n')
+    (run / "config.yaml").write_text("seed: 0\n")
+
+
+def test_a_parked_seed_resumes_on_a_fresh_clone_from_its_last_checkpoint(learning, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    interrupted_run(out, 0)
+    (out / "seed1").mkdir(parents=True)
+    (out / "seed1" / "summary.json").write_text("{}")  # finished: nothing to park
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    learning.main(["--config", config, "--seeds", "0", "1", "--out", str(out), "--park"])
+    assert (out / "partial_seed0.tar.gz").is_file() and not (out / "partial_seed1.tar.gz").exists()
+    assert json.loads((out / "partial_seed0.json").read_text())["checkpoint"] == "iter_000020"
+
+    clone = tmp_path / "clone"  # what a fresh clone has: the committed partial, no run folder
+    clone.mkdir()
+    for name in ("partial_seed0.tar.gz", "partial_seed0.json"):
+        (clone / name).write_bytes((out / name).read_bytes())
+    resumed = []
+
+    def train(cfg, resume=False):
+        resumed.append(resume)
+        raise RuntimeError("would train")
+
+    monkeypatch.setattr(learning, "train", train)
+    with pytest.raises(RuntimeError, match="would train"):
+        learning.main(["--config", config, "--seeds", "0", "--out", str(clone)])
+    assert resumed == [True]
+    run = clone / "seed0"
+    assert (run / "checkpoints" / "iter_000020" / "state.json").read_text() == "iter_000020"
+    assert not (run / "checkpoints" / "iter_000010").exists() and not (run / "tb").exists()  # left out: not needed
+    assert (run / "metrics.jsonl").is_file() and (run / "config.yaml").is_file()
+
+
+def test_a_parked_seed_from_other_package_versions_is_refused(learning, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    interrupted_run(out, 0)
+    config = str(ROOT / "configs" / "quickstart.yaml")
+    learning.main(["--config", config, "--seeds", "0", "--out", str(out), "--park"])
+    made = json.loads((out / "partial_seed0.json").read_text())
+    (out / "partial_seed0.json").write_text(json.dumps(made | {"packages": {"torch": "0.0"}}))
+    import shutil
+
+    shutil.rmtree(out / "seed0")
+    would_train(learning, monkeypatch)
+    with pytest.raises(SystemExit) as exit_:
+        learning.main(["--config", config, "--seeds", "0", "--out", str(out)])
+    assert exit_.value.code == 2
+    assert not (out / "seed0").exists()
