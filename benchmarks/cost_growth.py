@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 import yaml
-from provenance import ROOT, command, commit, cpu, packages
+from provenance import ROOT, command, commit, cpu, packages, write_results
 
 CONFIGS = ["configs/quickstart.yaml", "configs/mt10.yaml", "configs/mt50.yaml"]
 LEARNING = ["5 tasks=benchmarks/results/learning_progress", "10 tasks=benchmarks/results/mt10_stepnft",
@@ -184,11 +184,8 @@ def main(argv=None) -> dict:
     text = tables(live_rows, learned)
     record = {"command": command(), "commit": commit(), "packages": packages(), "cpu": cpu(),
               "load_average_1min": os.getloadavg()[0], "args": vars(args), "live": live_rows, "learning": learned}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "cost_growth.json").write_text(json.dumps(record, indent=2))
-    (out / "cost_growth.md").write_text(f"Command: `{record['command']}` (commit {record['commit']}; load average "
-                                        f"{record['load_average_1min']:.1f} at the end)\n\n{text}\n")
+    write_results(Path(args.out), "cost_growth", record, text, f"Command: `{record['command']}` (commit "
+                  f"{record['commit']}; load average {record['load_average_1min']:.1f} at the end)")
     print(text)
     return record
 

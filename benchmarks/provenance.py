@@ -62,3 +62,14 @@ def cpu() -> dict[str, str | None]:
         pass
     return {"model": model or platform.processor() or None, "aten_capability": torch.backends.cpu.get_cpu_capability(),
             "onednn_max_cpu_isa": os.environ.get("ONEDNN_MAX_CPU_ISA")}
+
+
+def write_results(out: Path, stem: str, record: dict, text: str, header: str) -> None:
+    """``OUT/STEM.json`` (the record) and ``OUT/STEM.md`` (``header``, then ``text``, the table the
+    script prints), the folder made if needed."""
+    import json
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(record, indent=2))
+    (out / f"{stem}.md").write_text(f"{header}\n\n{text}\n")

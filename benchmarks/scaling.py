@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
-from provenance import commit
+from provenance import commit, write_results
 
 from stepnft.algos.base import make_algorithm, make_optimizer
 from stepnft.algos.stepnft import stepnft_update
@@ -402,9 +402,8 @@ def project_only(args, out: Path, argv) -> dict:
                                                "command": measured.get("command")},
               "args": vars(args), "projection": project(measured, cfg, args)}
     text = projection_table(record["projection"], record["args"])
-    (out / "projection.json").write_text(json.dumps(record, indent=2))
-    (out / "projection.md").write_text(f"Command: `{record['command']}` (commit {record['commit']}), from the figures "
-                                       f"of {args.project_from} (commit {measured.get('commit')})\n\n{text}\n")
+    write_results(out, "projection", record, text, f"Command: `{record['command']}` (commit {record['commit']}), "
+                  f"from the figures of {args.project_from} (commit {measured.get('commit')})")
     print(text)
     return record
 
