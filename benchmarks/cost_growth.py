@@ -150,13 +150,14 @@ def tables(live_rows: list[dict], learned: list[dict]) -> str:
     for r in learned:
         s = r["seeds"]
         share = lambda k: fmt_mean([x["shares"].get(k, 0.0) * 100 for x in s], ".0f") + " %"
-        to = lambda g, unit: fmt_mean([None if x[f"steps_to_plus_{g:.2f}"] is None else x[f"steps_to_plus_{g:.2f}"] / 1e6
-                                       for x in s] if unit == "M" else [x[f"hours_to_plus_{g:.2f}"] for x in s], ".2f")
-        reached = lambda g: sum(x[f"steps_to_plus_{g:.2f}"] is not None for x in s)
+        steps_to = lambda g: [x[f"steps_to_plus_{g:.2f}"] for x in s]
+        hours_to = lambda g: fmt_mean([x[f"hours_to_plus_{g:.2f}"] for x in s], ".2f")
+        millions_to = lambda g: fmt_mean([None if n is None else n / 1e6 for n in steps_to(g)], ".2f")
+        reached = lambda g: sum(n is not None for n in steps_to(g))
         lines.append(f"| {r['label']} | {r['tasks']} | {r['algorithm']} | {len(s)} | {fmt_mean([x['env_steps'] / 1e6 for x in s], '.2f')} | "
                      f"{fmt_mean([x['wall_s'] / 3600 for x in s], '.2f')} | {share('rollouts')} | {share('updates')} | "
                      f"{share('validation')} | {share('test_eval')} | {fmt_mean([x['rollout_steps_per_s'] for x in s], ',.0f')} | "
-                     + " | ".join(f"{to(g, 'M')} ({reached(g)}/{len(s)}) | {to(g, 'h')}" for g in GAINS) + " |")
+                     + " | ".join(f"{millions_to(g)} ({reached(g)}/{len(s)}) | {hours_to(g)}" for g in GAINS) + " |")
     return "\n".join(lines)
 
 

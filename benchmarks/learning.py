@@ -70,7 +70,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 def park(out: Path, seed: int) -> Path | None:
     """An interrupted seed's run folder packed for another machine: its last checkpoint, config,
     metrics, language cache and policies (not its TensorBoard logs, not older checkpoints), with
-    ``partial_seedN.json`` saying what made it. None when the seed has finished or has no checkpoint."""
+    ``partial_seedN.json`` saying what parked it (the parking code's commit: the run folder does not
+    record the commit its iterations ran on; a results README says it). None when the seed has finished or has no checkpoint."""
     run = out / f"seed{seed}"
     latest = run / "checkpoints" / "LATEST"
     if (run / "summary.json").is_file() or not latest.is_file():
@@ -89,7 +90,7 @@ def park(out: Path, seed: int) -> Path | None:
     with tarfile.open(path, "w:gz") as tar:
         tar.add(run, arcname=run.name, filter=member)
     (out / f"partial_seed{seed}.json").write_text(json.dumps(
-        {"seed": seed, "checkpoint": keep, "commit": commit(), "command": command(), "packages": packages(),
+        {"seed": seed, "checkpoint": keep, "parked_on_commit": commit(), "command": command(), "packages": packages(),
          "cpu": cpu()}, indent=2))
     return path
 
@@ -107,7 +108,7 @@ def unpark(out: Path, seed: int) -> bool:
               "mix two sets of numbers in one run; delete it (and its .json) to run the seed from the start")
     with tarfile.open(path) as tar:
         tar.extractall(out, filter="data")
-    print(f"learning.py: seed {seed}: resuming the parked run {path} ({made['checkpoint']}, commit {made['commit']})")
+    print(f"learning.py: seed {seed}: resuming the parked run {path} ({made['checkpoint']}, parked on commit {made['parked_on_commit']})")
     return True
 
 

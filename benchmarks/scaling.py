@@ -11,7 +11,7 @@ writes scaling.json, scaling.md and scaling.png to --out.
     .venv/bin/python benchmarks/scaling.py            # the measurement: a quiet machine with >= 3 cores, a few minutes
     .venv/bin/python benchmarks/scaling.py --quick    # checks that it runs (tiny sizes: numbers mean nothing)
     .venv/bin/python benchmarks/scaling.py --project-from benchmarks/results/scaling --config configs/mt50.yaml \
-        --project-envs 400 --episode-steps 144 --project-iterations 160 --out benchmarks/results/scaling_mt50
+        --project-envs 400 --episode-steps 144.3 --project-iterations 160 --out benchmarks/results/scaling_mt50
                                                       # the projection alone, for another run, from measured figures
 """
 
