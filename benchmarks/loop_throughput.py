@@ -107,7 +107,7 @@ def _replay_part(args) -> tuple[float, int]:
         from stepnft.envs.gym import ActionMap, GymSpec, make_gym_env
 
         spec = GymSpec.from_config(env_cfg)
-        ids = {task: spec.ids[spec.tasks.index(env_cfg.tasks[task])] for task in tasks}
+        ids = {task: spec.env_id(env_cfg.tasks[task]) for task in tasks}
         envs = {task: make_gym_env(ids[task], dict(spec.make_kwargs), env_cfg.max_episode_steps) for task in tasks}
         actions = {task: ActionMap(env.action_space) for task, env in envs.items()}
     else:

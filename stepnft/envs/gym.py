@@ -91,6 +91,10 @@ class GymSpec:
     def tasks(self) -> list[str]:
         return [task_name(i) for i in self.ids]
 
+    def env_id(self, task: str) -> str:
+        """The Gymnasium id behind task name ``task`` (one of :attr:`tasks`)."""
+        return self.ids[self.tasks.index(task)]
+
 
 def make_gym_env(env_id: str, make_kwargs: dict, max_episode_steps: int | None = None, render: bool = False) -> gym.Env:
     """``gymnasium.make`` with one-line errors (an id that is not registered, a module that does
@@ -209,7 +213,7 @@ class GymChunkEnv(ChunkEpisode, gym.Env):
     def __init__(self, spec: GymSpec, task: str, n_exec: int = 1, max_episode_steps: int = 200,
                  terminate_on_success: bool = True, seed: int = 0, render_size: tuple[int, int] | None = None,
                  image_size: int = 64):
-        env_id = spec.ids[spec.tasks.index(task)]
+        env_id = spec.env_id(task)
         renders = render_size is not None or RENDER in spec.cameras
         self._env = make_gym_env(env_id, dict(spec.make_kwargs), max_episode_steps, render=renders)
         self.render_size = render_size

@@ -15,7 +15,7 @@ from stepnft.config import EnvConfig, TrainConfig, load_config
 from stepnft.data.demos import generate_demos, load_demos, load_or_generate_demos
 from stepnft.config import DemoConfig
 from stepnft.envs import make_vec_env, simulator_for
-from stepnft.envs.gym import task_name
+from stepnft.envs.gym import GymSpec, task_name
 from stepnft.settings import SettingError
 
 TOY = dict(name="gym", id=["gym_toy:Toy-v0"], state_keys=["agent", "target"], expert="gym_toy:expert",
@@ -30,6 +30,8 @@ def test_tasks_follow_the_env_ids_and_gym_settings_belong_to_gym():
     assert toy_env().tasks == ["Toy-v0"] and task_name("gym_pusht:gym_pusht/PushT-v0") == "PushT-v0"
     assert EnvConfig(name="gym", id=["FetchPush-v4", "FetchPickAndPlace-v4"]).tasks == ["FetchPush-v4",
                                                                                       "FetchPickAndPlace-v4"]
+    spec = GymSpec.from_config(EnvConfig(name="gym", id=["gym_pusht:gym_pusht/PushT-v0", "FetchPush-v4"]))
+    assert spec.env_id("PushT-v0") == "gym_pusht:gym_pusht/PushT-v0" and spec.env_id("FetchPush-v4") == "FetchPush-v4"
     with pytest.raises(SettingError, match="needs the Gymnasium env: give env.id"):
         EnvConfig(name="gym")
     with pytest.raises(SettingError, match="env.state_keys is a setting of env.name gym"):
