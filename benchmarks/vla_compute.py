@@ -29,6 +29,7 @@ has (delete the folder to measure again).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -88,7 +89,62 @@ def reset_peak() -> None:
     Path("/proc/self/clear_refs").write_text("5")
 
 
-def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0, precision: str = "fp32"):
+RANDOM_INITS = ("uniform_", "normal_", "trunc_normal_", "kaiming_uniform_", "kaiming_normal_", "xavier_uniform_",
+                "xavier_normal_")
+"""``torch.nn.init``'s random initialisers, which :func:`tiled_init` replaces (constant ones stay)."""
+TILE = 1 << 22
+"""Draws in the block :func:`tiled_init` tiles (4 M: 16 MB in float32)."""
+
+
+@contextlib.contextmanager
+def tiled_init(std: float = 0.02):
+    """Inside this context every random initialiser of ``torch.nn.init`` (and transformers' guarded
+    copies of them, which call the originals through ``TORCH_INIT_FUNCTIONS``) fills its tensor by
+    tiling one block of N(0, ``std``²) draws instead of drawing each value: a full-size π0's 4 B
+    parameters take ~250 s to draw on one core here (``normal_`` in bfloat16 runs at ~30 M values/s)
+    and a few seconds to tile. A cost benchmark's weights only need to be finite and of a
+    realistic scale (the time of a matrix product does not depend on its values); constant
+    initialisers (norms' ones and zeros, zeroed biases) are kept."""
+    block = torch.randn(TILE, generator=torch.Generator().manual_seed(0)) * std
+
+    def fill(tensor, *args, **kwargs):
+        with torch.no_grad():
+            flat = tensor.view(-1) if tensor.is_contiguous() else torch.empty(tensor.numel(), dtype=tensor.dtype)
+            for i in range(0, flat.numel(), TILE):
+                part = flat[i:i + TILE]
+                part.copy_(block[:part.numel()])
+            if not tensor.is_contiguous():
+                tensor.copy_(flat.view(tensor.shape))
+        return tensor
+
+    targets = [sys.modules[name] for name in ("torch.nn.init", "torch.nn.modules.linear", "torch.nn.modules.conv",
+                                              "torch.nn.modules.sparse", "torch.nn.modules.activation")
+               if name in sys.modules]
+    originals = [(module, name, getattr(module, name)) for module in targets for name in RANDOM_INITS
+                 if hasattr(module, name)]
+    table = None
+    try:
+        from transformers import initialization
+
+        table = initialization.TORCH_INIT_FUNCTIONS
+    except ImportError:  # LeRobot 0.4.4's transformers initialises through torch.nn.init itself
+        pass
+    saved = {name: table[name] for name in RANDOM_INITS if name in table} if table is not None else {}
+    try:
+        for module, name, _ in originals:
+            setattr(module, name, fill)
+        for name in saved:
+            table[name] = fill
+        yield
+    finally:
+        for module, name, original in originals:
+            setattr(module, name, original)
+        for name, original in saved.items():
+            table[name] = original
+
+
+def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0, precision: str = "fp32",
+          init: str = "tiled"):
     from stepnft.policies.lerobot.tiny import PI_SIZES, SIZES, NewVLA, build_vla
 
     chunk, steps = CHUNK[size]
@@ -99,9 +155,10 @@ def build(model: str, size: str, device: str, tmp: Path, lora_rank: int = 0, pre
     default = torch.get_default_dtype()
     torch.set_default_dtype(torch.bfloat16 if precision == "bf16" else torch.float32)
     try:
-        policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
-                                  image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank), tmp / size,
-                           dtype="bfloat16" if precision == "bf16" else "float32")
+        with tiled_init() if init == "tiled" else contextlib.nullcontext():
+            policy = build_vla(NewVLA(out="", model=model, size=size, chunk_size=chunk, n_exec=chunk, num_steps=steps,
+                                      image_size=side, train="vlm" if lora_rank else "expert", lora_rank=lora_rank),
+                               tmp / size, dtype="bfloat16" if precision == "bf16" else "float32")
     finally:
         torch.set_default_dtype(default)
     for param in policy.parameters():
@@ -155,10 +212,13 @@ def one(args) -> dict:
     torch.set_num_threads(args.threads)
     cuda = args.device.startswith("cuda")
     with tempfile.TemporaryDirectory() as tmp:
-        policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank, args.precision)
+        start = time.perf_counter()
+        policy, side = build(args.model, args.size, args.device, Path(tmp), args.lora_rank, args.precision, args.init)
+        build_s = time.perf_counter() - start
     policy.set_precision(args.precision).set_gradient_checkpointing(args.checkpointing)
     out = {"algo": args.algo, "precision": args.precision, "gradient_checkpointing": args.checkpointing,
-           "lora_rank": args.lora_rank, "calls": args.calls, "warmups": args.warmups, "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
+           "lora_rank": args.lora_rank, "calls": args.calls, "warmups": args.warmups, "init": args.init,
+           "build_s": build_s, "onednn_max_cpu_isa": os.environ.get("ONEDNN_MAX_CPU_ISA"), "parameters_M": sum(p.numel() for p in policy.parameters()) / 1e6,
            "trained_M": sum(p.numel() for p in policy.parameters() if p.requires_grad) / 1e6,
            "weights_MB": sum(p.nbytes for p in policy.parameters()) / 2**20}
     batch = make_batch(policy, args.algo, args.calls, side)
@@ -251,7 +311,14 @@ def main() -> None:
                         help="untimed updates first (0 at π0's size, where one update takes minutes: the first one's "
                              "extra work, PPO's value head and AdamW's state, is then inside the timed one)")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--onednn-isa", default="ALL",
+                        help="oneDNN's instruction-set cap for the rows (ONEDNN_MAX_CPU_ISA): ALL (default) lets bf16 run on "
+                             "the CPU's AVX-512 bf16 units; AVX2 is the cap importing stepnft sets for reproducible learning "
+                             "figures, under which a bf16 matrix product is ~9x slower on an AVX-512 CPU")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--init", choices=["tiled", "model"], default="tiled",
+                        help="random weights: tiled (one block of N(0, 0.02^2) draws tiled over every tensor, seconds at "
+                             "π0's size) or model (the model's own initialisers, ~4.5 min for π0 on one core)")
     parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS), help="rows of these algorithms only")
     parser.add_argument("--precisions", nargs="+", choices=["fp32", "bf16"], default=["fp32", "bf16"],
                         help="rows of these precisions only")
@@ -261,6 +328,9 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="folder for compute.json and compute.md")
     parser.add_argument("--one", nargs=4, metavar=("ALGO", "PRECISION", "CHECKPOINTING", "LORA_RANK"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    # Before importing stepnft (its cap is a default) and before torch runs a kernel (oneDNN reads
+    # the cap once); the rows' processes inherit it.
+    os.environ["ONEDNN_MAX_CPU_ISA"] = args.onednn_isa
     if args.one:
         args.algo, args.precision, args.checkpointing = args.one[0], args.one[1], args.one[2] == "1"
         args.lora_rank = int(args.one[3])
@@ -291,7 +361,7 @@ def main() -> None:
             results["rows"].append(kept[0])
             continue
         command = [sys.executable, __file__, "--model", args.model, "--size", args.size, "--calls", str(args.calls), "--reps", str(args.reps),
-                   "--warmups", str(args.warmups), "--threads", str(args.threads), "--device", args.device, "--sample-calls", str(args.sample_calls),
+                   "--warmups", str(args.warmups), "--threads", str(args.threads), "--onednn-isa", args.onednn_isa, "--init", args.init, "--device", args.device, "--sample-calls", str(args.sample_calls),
                    "--one", algo, precision, "1" if checkpointing else "0", str(lora_rank)]
         done = subprocess.run(command, capture_output=True, text=True, preexec_fn=lambda: cap_memory(limit_gb))
         lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]

@@ -48,3 +48,23 @@ def test_ratios_read_the_targets_the_right_way_round(vla_compute):
     assert r["checkpointing_vs_not_update_memory_stepnft"] == pytest.approx(0.5)
     table = vla_compute.table(rows)
     assert table.count("\n") == len(rows) + 1 and "error: x" in table
+
+
+def test_tiled_init_fills_random_weights_at_scale_keeps_constant_ones_and_restores_torch(vla_compute):
+    import torch
+
+    originals = torch.nn.init.normal_, torch.nn.init.kaiming_uniform_
+    with vla_compute.tiled_init(std=0.02):
+        linear, norm = torch.nn.Linear(300, 200), torch.nn.LayerNorm(300)
+        embed = torch.nn.Embedding(vla_compute.TILE // 64 + 5, 128)  # more values than the block: tiled
+        skewed = torch.empty(40, 30).t()  # not contiguous
+        torch.nn.init.normal_(skewed, std=5.0)
+    assert (torch.nn.init.normal_, torch.nn.init.kaiming_uniform_) == originals
+    assert torch.isfinite(linear.weight).all() and 0.015 < linear.weight.std().item() < 0.025
+    assert linear.weight.abs().max() > 0 and not torch.equal(linear.weight[0], linear.weight[1])
+    assert torch.equal(norm.weight, torch.ones(300)) and torch.equal(norm.bias, torch.zeros(300))
+    flat = embed.weight.detach().view(-1)
+    assert torch.equal(flat[vla_compute.TILE:vla_compute.TILE + 320], flat[:320])  # the block repeats
+    assert torch.isfinite(skewed).all() and 0.015 < skewed.std().item() < 0.025
+    fresh = torch.nn.Linear(300, 200)  # outside: torch's own kaiming init again
+    assert fresh.weight.abs().max() <= (1 / 300) ** 0.5 + 1e-6
