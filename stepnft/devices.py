@@ -56,3 +56,27 @@ def to_device(data: T, device: torch.device | str) -> T:
         return dataclasses.replace(data, **{f.name: to_device(getattr(data, f.name), device)
                                             for f in dataclasses.fields(data) if f.init})
     return data
+
+
+def bf16_capped_note(cpu_flags: set[str] | None = None) -> str | None:
+    """One line when bfloat16 would run slow on this CPU: it has AVX-512 bf16 (or AMX) units but
+    oneDNN is capped at AVX2, the cap importing stepnft sets for reproducible figures
+    (``stepnft/__init__.py``), under which a bf16 matrix product falls back to a kernel ~9× slower
+    (docs/lerobot.md, "bf16 on a CPU"). ``None`` otherwise. oneDNN reads the cap once, at its first
+    kernel, so a process can only be told, not fixed. ``cpu_flags``: the CPU's (default: read from
+    ``/proc/cpuinfo``)."""
+    import os
+    from pathlib import Path
+
+    if os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper() != "AVX2":
+        return None
+    if cpu_flags is None:
+        try:
+            line = next((l for l in Path("/proc/cpuinfo").read_text().splitlines() if l.startswith("flags")), "")
+        except OSError:  # not Linux: nothing to tell
+            return None
+        cpu_flags = set(line.split(":", 1)[-1].split())
+    if not {"avx512_bf16", "amx_bf16"} & cpu_flags:
+        return None
+    return ("bf16 on this CPU runs ~9x slower under stepnft's oneDNN cap (ONEDNN_MAX_CPU_ISA=AVX2, set for "
+            "reproducible figures): export ONEDNN_MAX_CPU_ISA=ALL before the run to use its bf16 units")

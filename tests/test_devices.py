@@ -206,3 +206,29 @@ def test_a_bandit_run_trains_and_resumes_on_cuda(tmp_path):
     assert summary["iterations"] == 2 and 0 <= summary["average"]["after"] <= 1
     assert load_checkpoint(cfg.run_dir)["policy"].device.type == "cpu"
     assert main(["train", "--resume", cfg.run_dir, "--device", "cpu"]) == 0  # a CUDA run may resume on the CPU
+
+
+def test_bf16_note_names_the_cap_only_where_the_cpu_has_bf16_units_and_the_cap_is_on(monkeypatch):
+    from stepnft.devices import bf16_capped_note
+
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    note = bf16_capped_note({"avx2", "avx512f", "avx512_bf16"})
+    assert note is not None and "ONEDNN_MAX_CPU_ISA=ALL" in note and "\n" not in note
+    assert bf16_capped_note({"avx2", "amx_bf16"}) is not None
+    assert bf16_capped_note({"avx2", "avx512f"}) is None  # no bf16 units: the cap costs nothing
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "ALL")
+    assert bf16_capped_note({"avx512_bf16"}) is None
+
+
+def test_set_precision_bf16_warns_once_per_call_under_the_cap_on_a_bf16_cpu(monkeypatch):
+    import warnings
+
+    import stepnft.policies.base as base
+
+    monkeypatch.setattr(base, "bf16_capped_note", lambda: "bf16 slow here")
+    policy = FlowPolicy(POLICY)
+    with pytest.warns(RuntimeWarning, match="bf16 slow here"):
+        policy.set_precision("bf16")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        policy.set_precision("fp32")  # float32 is never slowed by the cap

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
+import warnings
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
@@ -30,7 +31,7 @@ from safetensors.torch import load_file, save
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from stepnft.devices import to_device
+from stepnft.devices import bf16_capped_note, to_device
 from stepnft.plugins import PluginRegistry
 from stepnft.policies.configuration import PolicyConfig, missing_run_fields
 from stepnft.runs import write_atomic
@@ -200,6 +201,9 @@ class Policy(nn.Module, ABC):
         if precision not in PRECISIONS:
             raise ValueError(f"precision={precision!r} is invalid: use {' or '.join(PRECISIONS)}")
         dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+        note = bf16_capped_note() if precision == "bf16" and self.device.type == "cpu" else None
+        if note is not None:
+            warnings.warn(note, RuntimeWarning, stacklevel=2)
         for param in self.parameters():
             if not param.requires_grad and param.is_floating_point():
                 param.data = param.data.to(dtype)
